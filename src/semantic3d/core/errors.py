@@ -1,0 +1,73 @@
+"""The error hierarchy.
+
+Every error raised on bad input derives from :class:`Semantic3DError` and from the
+matching built-in, so ``except ValueError`` keeps working for callers that do not know
+this package. Messages say where, what was expected and what was found, e.g.
+``scan.txt: line 1044: expected 7 columns (x y z intensity r g b), found 4``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+
+class Semantic3DError(Exception):
+    """Root of every error this package raises on purpose."""
+
+
+class DataFormatError(Semantic3DError, ValueError):
+    """A file does not follow its format (wrong columns, non-numbers, values out of range)."""
+
+    def __init__(self, message: str, *, path: str | None = None, line: int | None = None) -> None:
+        where = ""
+        if path is not None:
+            where = f"{path}: "
+            if line is not None:
+                where += f"line {line}: "
+        super().__init__(where + message)
+        self.path = path
+        self.line = line
+        self.detail = message
+
+
+class ShapeError(Semantic3DError, ValueError):
+    """Arrays handed to a function have the wrong shape, length or dtype."""
+
+
+class MissingExtraError(Semantic3DError, ImportError):
+    """An optional dependency is not installed; the message names the extra to install."""
+
+    def __init__(self, package: str, extra: str) -> None:
+        super().__init__(
+            f"this feature needs the optional package {package!r}: "
+            f"pip install 'semantic3d[{extra}]'"
+        )
+        self.package = package
+        self.extra = extra
+
+
+class DownloadError(Semantic3DError, OSError):
+    """A download or an archive extraction failed."""
+
+
+class SubmissionError(Semantic3DError, ValueError):
+    """A benchmark submission is invalid; ``problems`` lists every problem found at once."""
+
+    def __init__(self, problems: Sequence[str], *, source: str | None = None) -> None:
+        self.problems = tuple(problems)
+        self.source = source
+        head = f"{source}: " if source else ""
+        count = len(self.problems)
+        lines = "\n".join(f"  - {problem}" for problem in self.problems)
+        noun = "problem" if count == 1 else "problems"
+        super().__init__(f"{head}invalid submission, {count} {noun}:\n{lines}")
+
+
+def require(package: str, extra: str) -> object:
+    """Import ``package`` or raise :class:`MissingExtraError` naming the extra to install."""
+    import importlib
+
+    try:
+        return importlib.import_module(package)
+    except ImportError as exc:
+        raise MissingExtraError(package, extra) from exc
