@@ -32,7 +32,9 @@ class PointCloud:
     def __post_init__(self) -> None:
         xyz, intensity, rgb, labels = self.xyz, self.intensity, self.rgb, self.labels
         if xyz.ndim != 2 or xyz.shape[1] != 3 or xyz.dtype != np.float64:
-            raise ShapeError(f"xyz: expected an (n, 3) float64 array, found {xyz.shape} {xyz.dtype}")
+            raise ShapeError(
+                f"xyz: expected an (n, 3) float64 array, found {xyz.shape} {xyz.dtype}"
+            )
         n = xyz.shape[0]
         if intensity.shape != (n,) or intensity.dtype != np.int32:
             raise ShapeError(

@@ -1,1 +1,29 @@
-"""io."""
+"""Formats only: Semantic3D ASCII points and labels, LAS/LAZ, PLY and the binary cache.
+
+Every reader streams: ``iter_*`` yields chunks, ``read_*`` wraps it, ``write_*`` takes
+an iterable of chunks.
+"""
+
+from semantic3d.io.ascii import (
+    AsciiPointWriter,
+    iter_ascii_points,
+    open_ascii_writer,
+    read_ascii_points,
+    write_ascii_points,
+)
+from semantic3d.io.chunks import DEFAULT_CHUNK_SIZE, rechunk
+from semantic3d.io.labels import count_labels, iter_labels, read_labels, write_labels
+
+__all__ = [
+    "DEFAULT_CHUNK_SIZE",
+    "AsciiPointWriter",
+    "count_labels",
+    "iter_ascii_points",
+    "iter_labels",
+    "open_ascii_writer",
+    "read_ascii_points",
+    "read_labels",
+    "rechunk",
+    "write_ascii_points",
+    "write_labels",
+]

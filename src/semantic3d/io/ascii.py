@@ -1,0 +1,231 @@
+"""Semantic3D ASCII point files: ``x y z intensity r g b``, one point per line.
+
+The benchmark's scans hold up to ~500 M lines (~17 GB); everything here streams in
+blocks of whole lines and keeps memory constant. Accepted: spaces or tabs between
+columns, blanks at line ends, CRLF, a missing final newline, signed integer
+intensities (``-1515``). Rejected with file, line, expected and found: a line without
+exactly 7 columns, a token that is not a number, a fractional intensity or colour,
+colours outside 0..255.
+
+Labels live beside the points in a ``.labels`` file (:mod:`semantic3d.io.labels`); pass
+``labels_path`` to read or write them together, chunk for chunk.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Iterator
+from contextlib import AbstractContextManager
+from pathlib import Path
+from types import TracebackType
+
+import numba
+import numpy as np
+
+from semantic3d.core.errors import DataFormatError
+from semantic3d.core.pointcloud import PointCloud
+from semantic3d.io import _ascii_kernels as kernels
+from semantic3d.io.chunks import (
+    DEFAULT_BLOCK_BYTES,
+    DEFAULT_CHUNK_SIZE,
+    iter_line_blocks,
+    line_text,
+    rechunk,
+    validate_chunk_size,
+)
+from semantic3d.io.labels import format_labels_bytes, iter_labels
+
+__all__ = [
+    "COLUMNS",
+    "AsciiPointWriter",
+    "iter_ascii_points",
+    "open_ascii_writer",
+    "read_ascii_points",
+    "write_ascii_points",
+]
+
+COLUMNS = ("x", "y", "z", "intensity", "r", "g", "b")
+_FORMAT_BATCH = 1 << 17
+
+
+def iter_ascii_points(
+    path: str | Path,
+    *,
+    chunk_size: int = DEFAULT_CHUNK_SIZE,
+    labels_path: str | Path | None = None,
+    block_bytes: int = DEFAULT_BLOCK_BYTES,
+) -> Iterator[PointCloud]:
+    """Stream the points of ``path`` in chunks of exactly ``chunk_size`` (the last may be shorter).
+
+    With ``labels_path``, each chunk carries its labels; a label file with a different
+    number of lines raises :class:`~semantic3d.core.errors.DataFormatError`.
+    """
+    chunk_size = validate_chunk_size(chunk_size)
+    path = Path(path)
+    clouds = rechunk(_iter_point_blocks(path, block_bytes), chunk_size, PointCloud.concatenate)
+    if labels_path is None:
+        return clouds
+    return _attach_labels(path, clouds, Path(labels_path), chunk_size)
+
+
+def read_ascii_points(path: str | Path, *, labels_path: str | Path | None = None) -> PointCloud:
+    """The whole file as one :class:`PointCloud` (a thin wrapper over :func:`iter_ascii_points`)."""
+    chunks = list(iter_ascii_points(path, labels_path=labels_path))
+    if not chunks:
+        return PointCloud.empty(with_labels=labels_path is not None)
+    return chunks[0] if len(chunks) == 1 else PointCloud.concatenate(chunks)
+
+
+class AsciiPointWriter(AbstractContextManager["AsciiPointWriter"]):
+    """Writes point chunks (and their labels, when a labels path is given) as they come.
+
+    Output bytes depend only on the arrays and ``decimals``: the same data always gives
+    the same file. Coordinates are rounded to ``decimals`` places (3: millimetres, as the
+    benchmark's files).
+    """
+
+    def __init__(
+        self, path: str | Path, *, labels_path: str | Path | None = None, decimals: int = 3
+    ) -> None:
+        if not 0 <= decimals <= kernels.MAX_DECIMALS:
+            raise ValueError(f"decimals must be in 0..{kernels.MAX_DECIMALS}, found {decimals}")
+        self.path = Path(path)
+        self.labels_path = None if labels_path is None else Path(labels_path)
+        self.decimals = decimals
+        self.n_points = 0
+        self._limit = 9.0e18 / 10.0**decimals
+        self._stream = self.path.open("wb")
+        self._labels_stream = None if self.labels_path is None else self.labels_path.open("wb")
+
+    def write(self, cloud: PointCloud) -> None:
+        """Append ``cloud``; it must carry labels when the writer has a labels path."""
+        if self._labels_stream is not None and cloud.labels is None:
+            raise DataFormatError(
+                "expected points with labels (the writer has a labels file), found none",
+                path=str(self.path),
+            )
+        for start in range(0, cloud.n_points, _FORMAT_BATCH):
+            self._write_batch(cloud[start : start + _FORMAT_BATCH])
+        self.n_points += cloud.n_points
+
+    def _write_batch(self, batch: PointCloud) -> None:
+        xyz = np.ascontiguousarray(batch.xyz)
+        if not np.isfinite(xyz).all() or np.abs(xyz).max(initial=0.0) >= self._limit:
+            bad = int(np.flatnonzero(~(np.abs(xyz) < self._limit).all(axis=1))[0])
+            raise DataFormatError(
+                f"point #{self.n_points + bad}: expected finite coordinates below "
+                f"{self._limit:.3g} m, found {xyz[bad].tolist()}",
+                path=str(self.path),
+            )
+        n_segments = max(1, min(numba.get_num_threads(), batch.n_points // 4096))
+        buffers, used = kernels.format_points(
+            xyz,
+            np.ascontiguousarray(batch.intensity),
+            np.ascontiguousarray(batch.rgb),
+            self.decimals,
+            n_segments,
+        )
+        for segment in range(n_segments):
+            self._stream.write(buffers[segment, : used[segment]].data)
+        if self._labels_stream is not None and batch.labels is not None:
+            self._labels_stream.write(format_labels_bytes(batch.labels))
+
+    def close(self) -> None:
+        """Flush and close the files."""
+        self._stream.close()
+        if self._labels_stream is not None:
+            self._labels_stream.close()
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        traceback: TracebackType | None,
+    ) -> None:
+        self.close()
+
+
+def open_ascii_writer(
+    path: str | Path, *, labels_path: str | Path | None = None, decimals: int = 3
+) -> AsciiPointWriter:
+    """Open an :class:`AsciiPointWriter`; use it as a context manager."""
+    return AsciiPointWriter(path, labels_path=labels_path, decimals=decimals)
+
+
+def write_ascii_points(
+    path: str | Path,
+    chunks: Iterable[PointCloud],
+    *,
+    labels_path: str | Path | None = None,
+    decimals: int = 3,
+) -> int:
+    """Write point chunks to ``path`` (and their labels to ``labels_path``); return the count."""
+    with open_ascii_writer(path, labels_path=labels_path, decimals=decimals) as writer:
+        for chunk in chunks:
+            writer.write(chunk)
+    return writer.n_points
+
+
+def _iter_point_blocks(path: Path, block_bytes: int) -> Iterator[PointCloud]:
+    first_line = 1
+    n_segments = numba.get_num_threads() * 4
+    for block in iter_line_blocks(path, block_bytes=block_bytes):
+        segments = max(1, min(n_segments, block.size // 65536))
+        xyz, intensity, rgb, status, bad_row = kernels.parse_points(block, segments, kernels._POW10)
+        if status != kernels.OK:
+            raise _point_error(path, block, int(status), int(bad_row), first_line)
+        first_line += xyz.shape[0]
+        yield PointCloud(xyz, intensity, rgb)
+
+
+def _attach_labels(
+    path: Path, clouds: Iterator[PointCloud], labels_path: Path, chunk_size: int
+) -> Iterator[PointCloud]:
+    label_chunks = iter_labels(labels_path, chunk_size=chunk_size)
+    n_points = 0
+    for cloud in clouds:
+        labels = next(label_chunks, None)
+        n_labels = n_points + (0 if labels is None else labels.size)
+        n_points += cloud.n_points
+        if labels is None or labels.size < cloud.n_points:
+            raise DataFormatError(
+                f"expected one label per point of {path.name}, found only {n_labels} labels "
+                f"for at least {n_points} points",
+                path=str(labels_path),
+            )
+        if labels.size > cloud.n_points:  # only the last point chunk can be short
+            n_labels += sum(chunk.size for chunk in label_chunks)
+            break
+        yield cloud.with_labels(labels)
+    else:
+        n_labels = n_points + sum(chunk.size for chunk in label_chunks)
+        if n_labels == n_points:
+            return
+    raise DataFormatError(
+        f"expected one label per point of {path.name} ({n_points} points), found {n_labels} labels",
+        path=str(labels_path),
+    )
+
+
+def _point_error(
+    path: Path, block: np.ndarray, status: int, bad_row: int, first_line: int
+) -> DataFormatError:
+    text = line_text(block, bad_row)
+    tokens = text.split()
+    if status == kernels.COLUMN_COUNT:
+        detail = f"expected {len(COLUMNS)} columns ({' '.join(COLUMNS)}), found {len(tokens)}"
+    elif status == kernels.BAD_NUMBER:
+        bad = next((t for t in tokens if not _is_number(t)), text)
+        detail = f"expected numbers in every column, found {bad!r}"
+    elif status == kernels.NOT_INTEGER:
+        bad = next((t for t in tokens[3:] if _is_number(t) and float(t) % 1), "")
+        detail = f"expected integer intensity and colour values, found {bad!r}"
+    else:
+        detail = f"expected r g b in 0..255 and an int32 intensity, found {' '.join(tokens[3:7])!r}"
+    return DataFormatError(detail, path=str(path), line=first_line + bad_row)
+
+
+def _is_number(token: str) -> bool:
+    try:
+        return np.isfinite(float(token))
+    except ValueError:
+        return False

@@ -1,0 +1,144 @@
+"""``.labels`` files: one non-negative integer per line (the benchmark's label format).
+
+Reading streams the file in blocks of whole lines. The benchmark's files hold one digit
+per line (``0``..``8``); those take a compiled fast path that validates every byte, and
+any other shape (CRLF line ends, blanks, several digits) falls back to a general
+compiled parser for that block. Values above 255 are rejected: labels are ``uint8``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Iterator
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from semantic3d.core.errors import DataFormatError
+from semantic3d.io import _label_kernels as kernels
+from semantic3d.io.chunks import (
+    DEFAULT_BLOCK_BYTES,
+    DEFAULT_CHUNK_SIZE,
+    concatenate_arrays,
+    iter_line_blocks,
+    line_text,
+    rechunk,
+    validate_chunk_size,
+)
+
+MAX_LABEL_VALUE = 255
+
+__all__ = ["count_labels", "format_labels_bytes", "iter_labels", "read_labels", "write_labels"]
+
+
+def iter_labels(
+    path: str | Path,
+    *,
+    chunk_size: int = DEFAULT_CHUNK_SIZE,
+    block_bytes: int = DEFAULT_BLOCK_BYTES,
+) -> Iterator[NDArray[np.uint8]]:
+    """Stream the labels of ``path`` as uint8 arrays of exactly ``chunk_size`` values.
+
+    The last chunk may be shorter; an empty file yields nothing. Raises
+    :class:`~semantic3d.core.errors.DataFormatError` naming the file and line of the first
+    empty line, non-integer or value above 255.
+    """
+    chunk_size = validate_chunk_size(chunk_size)
+    return rechunk(_iter_label_blocks(Path(path), block_bytes), chunk_size, concatenate_arrays)
+
+
+def read_labels(path: str | Path) -> NDArray[np.uint8]:
+    """All labels of ``path`` as one uint8 array."""
+    chunks = list(iter_labels(path))
+    return concatenate_arrays(chunks) if chunks else np.empty(0, np.uint8)
+
+
+def count_labels(path: str | Path) -> int:
+    """Number of labels in ``path``, validating every line as :func:`iter_labels` does."""
+    return sum(len(block) for block in _iter_label_blocks(Path(path), DEFAULT_BLOCK_BYTES))
+
+
+def write_labels(path: str | Path, chunks: Iterable[ArrayLike]) -> int:
+    """Write label chunks to ``path``, one decimal integer per line; return the count.
+
+    Values must be integers in 0..255. The file is written under its final name as it
+    streams; callers that need atomicity write to a temporary name and rename.
+    """
+    path = Path(path)
+    written = 0
+    with path.open("wb") as stream:
+        for chunk in chunks:
+            labels = _as_label_array(chunk, path=path, first_index=written)
+            if labels.size == 0:
+                continue
+            stream.write(format_labels_bytes(labels))
+            written += labels.size
+    return written
+
+
+def format_labels_bytes(labels: NDArray[np.uint8]) -> memoryview:
+    """``labels`` (uint8) as ``.labels`` text: one decimal value per line."""
+    if labels.size and labels.max() <= 9:
+        # The benchmark's case: "d\n" pairs, built with two strided stores.
+        text = np.empty(2 * labels.size, np.uint8)
+        text[0::2] = labels + 48
+        text[1::2] = 10
+        return text.data
+    text = np.empty(4 * labels.size, np.uint8)
+    used = kernels.format_labels(np.ascontiguousarray(labels), text)
+    return text[:used].data
+
+
+def _as_label_array(chunk: ArrayLike, *, path: Path, first_index: int) -> NDArray[np.uint8]:
+    array = np.asarray(chunk)
+    if array.ndim != 1:
+        raise DataFormatError(
+            f"expected a 1-d array of labels, found shape {array.shape}", path=str(path)
+        )
+    if array.dtype == np.uint8:
+        return np.ascontiguousarray(array)
+    if array.size and not np.issubdtype(array.dtype, np.integer):
+        raise DataFormatError(f"expected integer labels, found dtype {array.dtype}", path=str(path))
+    if array.size and (array.min() < 0 or array.max() > MAX_LABEL_VALUE):
+        bad = int(np.flatnonzero((array < 0) | (array > MAX_LABEL_VALUE))[0])
+        raise DataFormatError(
+            f"label #{first_index + bad} is {int(array[bad])}: expected 0..{MAX_LABEL_VALUE}",
+            path=str(path),
+        )
+    return array.astype(np.uint8)
+
+
+def _iter_label_blocks(path: Path, block_bytes: int) -> Iterator[NDArray[np.uint8]]:
+    first_line = 1
+    for block in iter_line_blocks(path, block_bytes=block_bytes):
+        labels = _parse_block(block)
+        if isinstance(labels, tuple):
+            status, bad_line = labels
+            raise _label_error(path, block, status, bad_line, first_line)
+        first_line += labels.size
+        yield labels
+
+
+def _parse_block(block: NDArray[np.uint8]) -> NDArray[np.uint8] | tuple[int, int]:
+    if block.size % 2 == 0:
+        fast = np.empty(block.size // 2, np.uint8)
+        if kernels.parse_single_digit(block, fast) == 0:
+            return fast
+    out = np.empty(kernels.count_newlines(block), np.uint8)
+    n_lines, status, bad_line = kernels.parse_general(block, out, MAX_LABEL_VALUE)
+    if status != kernels.OK:
+        return status, bad_line
+    return out[:n_lines]
+
+
+def _label_error(
+    path: Path, block: NDArray[np.uint8], status: int, bad_line: int, first_line: int
+) -> DataFormatError:
+    text = line_text(block, bad_line)
+    if status == kernels.EMPTY_LINE:
+        detail = "expected one integer label, found an empty line"
+    elif status == kernels.OUT_OF_RANGE:
+        detail = f"expected a label value in 0..{MAX_LABEL_VALUE}, found {text.strip()!r}"
+    else:
+        detail = f"expected one non-negative integer label, found {text.strip()!r}"
+    return DataFormatError(detail, path=str(path), line=first_line + bad_line)
