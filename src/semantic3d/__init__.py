@@ -11,4 +11,4 @@ from semantic3d.core.pointcloud import PointCloud
 
 __version__ = "0.1.0"
 
-__all__ = ["CLASSES", "UNLABELLED", "PointCloud", "SemanticClass", "Semantic3DError", "__version__"]
+__all__ = ["CLASSES", "UNLABELLED", "PointCloud", "Semantic3DError", "SemanticClass", "__version__"]
