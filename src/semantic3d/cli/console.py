@@ -13,6 +13,7 @@ from rich.progress import (
     DownloadColumn,
     MofNCompleteColumn,
     Progress,
+    ProgressColumn,
     TaskProgressColumn,
     TextColumn,
     TimeElapsedColumn,
@@ -55,6 +56,7 @@ def guarded() -> Iterator[None]:
 
 def progress_bar(*, bytes_: bool = False) -> Progress:
     """A rich progress bar; ``bytes_`` shows sizes and transfer speed instead of counts."""
+    columns: tuple[ProgressColumn, ...]
     if bytes_:
         columns = (
             TextColumn("{task.description}"),

@@ -1,9 +1,122 @@
-"""Placeholder: commands of this group are registered here."""
+"""``semantic3d download``: fetch the benchmark's scans into a folder."""
 
 from __future__ import annotations
 
+from enum import StrEnum
+from pathlib import Path
+
 import typer
+from rich.progress import Progress, TaskID
+from rich.table import Table
+
+from semantic3d.cli.console import console, err_console, guarded, progress_bar
+from semantic3d.datasets import (
+    DownloadProgress,
+    DownloadReport,
+    IncompleteDownloadError,
+    Semantic3D,
+    Split,
+    download_scans,
+    scans,
+)
+
+
+class SplitChoice(StrEnum):
+    """The ``--split`` values: one split or all of them."""
+
+    TRAIN = Split.TRAIN.value
+    SEMANTIC_8 = Split.SEMANTIC_8.value
+    REDUCED_8 = Split.REDUCED_8.value
+    ALL = "all"
+
+    def as_split(self) -> Split | None:
+        """The registry split (``None`` for all)."""
+        return None if self is SplitChoice.ALL else Split(self.value)
+
+
+_LABEL_CHARS = 36
+
+
+class _ProgressTasks:
+    """Feeds download callbacks into a rich progress bar, one task per archive."""
+
+    def __init__(self, bar: Progress) -> None:
+        self.bar = bar
+        self.tasks: dict[str, TaskID] = {}
+
+    def __call__(self, event: DownloadProgress) -> None:
+        task = self.tasks.get(event.filename)
+        if task is None:
+            label = event.filename.removesuffix(".7z")
+            label = label if len(label) <= _LABEL_CHARS else label[: _LABEL_CHARS - 1] + "…"
+            task = self.bar.add_task(label, total=event.total_bytes)
+            self.tasks[event.filename] = task
+        self.bar.update(task, completed=event.done_bytes, total=event.total_bytes)
+
+
+def _print_status(dataset: Semantic3D, split: Split | None) -> None:
+    table = Table(title=f"semantic3D scans in {dataset.root}")
+    for column in ("scan", "split", "points", "labels", "size"):
+        table.add_column(column, justify="right" if column == "size" else "left")
+    for files in dataset.scans(split):
+        labels = "-" if files.labels_path is None else ("yes" if files.has_labels else "missing")
+        table.add_row(
+            files.scan.name,
+            files.scan.split.value,
+            "yes" if files.has_points else "missing",
+            labels,
+            f"{files.size_bytes / 1e9:.2f} GB" if files.size_bytes else "",
+        )
+    console.print(table)
+    missing = dataset.missing(split)
+    console.print(f"{len(dataset.scans(split)) - len(missing)} complete, {len(missing)} missing")
+
+
+def _print_report(report: DownloadReport) -> None:
+    console.print(
+        f"{len(report.downloaded)} scans downloaded, {len(report.skipped)} already present, "
+        f"{len(report.failures)} failed -> {report.folder}"
+    )
+
+
+def download(
+    split: SplitChoice = typer.Option(..., "--split", help="Which scans to fetch."),
+    to: Path = typer.Option(..., "--to", help="Target folder (created if needed)."),
+    base_url: str | None = typer.Option(
+        None, "--base-url", help="Data root of a mirror (default: the semantic3d.net address)."
+    ),
+    retries: int = typer.Option(5, "--retries", min=0, help="Retries per archive."),
+    keep_archives: bool = typer.Option(
+        False, "--keep-archives", help="Keep the .7z files in <to>/.downloads."
+    ),
+    check: bool = typer.Option(
+        False, "--check", help="Only list which scans are present; download nothing."
+    ),
+) -> None:
+    """Download the benchmark's scans (resumable; files already present are skipped)."""
+    with guarded():
+        wanted = split.as_split()
+        if check:
+            _print_status(Semantic3D(to), wanted)
+            return
+        with progress_bar(bytes_=True) as bar:
+            try:
+                report = download_scans(
+                    scans(wanted),
+                    to=to,
+                    base_url=base_url,
+                    progress=_ProgressTasks(bar),
+                    retries=retries,
+                    keep_archives=keep_archives,
+                )
+            except IncompleteDownloadError as exc:
+                bar.stop()
+                _print_report(exc.report)
+                err_console.print("[dim]run the command again to resume.[/]")
+                raise
+        _print_report(report)
 
 
 def register(app: typer.Typer) -> None:
-    """Add this group's commands to ``app``."""
+    """Add the ``download`` command to ``app``."""
+    app.command("download")(download)
