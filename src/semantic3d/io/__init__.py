@@ -12,18 +12,39 @@ from semantic3d.io.ascii import (
     write_ascii_points,
 )
 from semantic3d.io.chunks import DEFAULT_CHUNK_SIZE, rechunk
-from semantic3d.io.labels import count_labels, iter_labels, read_labels, write_labels
+from semantic3d.io.formats import (
+    PointFormat,
+    detect_format,
+    iter_points,
+    read_points,
+    sibling_labels_path,
+    write_points,
+)
+from semantic3d.io.labels import (
+    attach_labels,
+    count_labels,
+    iter_labels,
+    read_labels,
+    write_labels,
+)
 
 __all__ = [
     "DEFAULT_CHUNK_SIZE",
     "AsciiPointWriter",
+    "PointFormat",
+    "attach_labels",
     "count_labels",
+    "detect_format",
     "iter_ascii_points",
     "iter_labels",
+    "iter_points",
     "open_ascii_writer",
     "read_ascii_points",
     "read_labels",
+    "read_points",
     "rechunk",
+    "sibling_labels_path",
     "write_ascii_points",
     "write_labels",
+    "write_points",
 ]

@@ -32,7 +32,7 @@ from semantic3d.io.chunks import (
     rechunk,
     validate_chunk_size,
 )
-from semantic3d.io.labels import format_labels_bytes, iter_labels
+from semantic3d.io.labels import attach_labels, format_labels_bytes
 
 __all__ = [
     "COLUMNS",
@@ -64,7 +64,7 @@ def iter_ascii_points(
     clouds = rechunk(_iter_point_blocks(path, block_bytes), chunk_size, PointCloud.concatenate)
     if labels_path is None:
         return clouds
-    return _attach_labels(path, clouds, Path(labels_path), chunk_size)
+    return attach_labels(path, clouds, Path(labels_path), chunk_size=chunk_size)
 
 
 def read_ascii_points(path: str | Path, *, labels_path: str | Path | None = None) -> PointCloud:
@@ -175,35 +175,6 @@ def _iter_point_blocks(path: Path, block_bytes: int) -> Iterator[PointCloud]:
             raise _point_error(path, block, int(status), int(bad_row), first_line)
         first_line += xyz.shape[0]
         yield PointCloud(xyz, intensity, rgb)
-
-
-def _attach_labels(
-    path: Path, clouds: Iterator[PointCloud], labels_path: Path, chunk_size: int
-) -> Iterator[PointCloud]:
-    label_chunks = iter_labels(labels_path, chunk_size=chunk_size)
-    n_points = 0
-    for cloud in clouds:
-        labels = next(label_chunks, None)
-        n_labels = n_points + (0 if labels is None else labels.size)
-        n_points += cloud.n_points
-        if labels is None or labels.size < cloud.n_points:
-            raise DataFormatError(
-                f"expected one label per point of {path.name}, found only {n_labels} labels "
-                f"for at least {n_points} points",
-                path=str(labels_path),
-            )
-        if labels.size > cloud.n_points:  # only the last point chunk can be short
-            n_labels += sum(chunk.size for chunk in label_chunks)
-            break
-        yield cloud.with_labels(labels)
-    else:
-        n_labels = n_points + sum(chunk.size for chunk in label_chunks)
-        if n_labels == n_points:
-            return
-    raise DataFormatError(
-        f"expected one label per point of {path.name} ({n_points} points), found {n_labels} labels",
-        path=str(labels_path),
-    )
 
 
 def _point_error(

@@ -15,6 +15,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from semantic3d.core.errors import DataFormatError
+from semantic3d.core.pointcloud import PointCloud
 from semantic3d.io import _label_kernels as kernels
 from semantic3d.io.chunks import (
     DEFAULT_BLOCK_BYTES,
@@ -28,7 +29,14 @@ from semantic3d.io.chunks import (
 
 MAX_LABEL_VALUE = 255
 
-__all__ = ["count_labels", "format_labels_bytes", "iter_labels", "read_labels", "write_labels"]
+__all__ = [
+    "attach_labels",
+    "count_labels",
+    "format_labels_bytes",
+    "iter_labels",
+    "read_labels",
+    "write_labels",
+]
 
 
 def iter_labels(
@@ -87,6 +95,40 @@ def format_labels_bytes(labels: NDArray[np.uint8]) -> memoryview:
     text = np.empty(4 * labels.size, np.uint8)
     used = kernels.format_labels(np.ascontiguousarray(labels), text)
     return text[:used].data
+
+
+def attach_labels(
+    path: Path, clouds: Iterator[PointCloud], labels_path: Path, *, chunk_size: int
+) -> Iterator[PointCloud]:
+    """Pair point chunks of ``path`` with the labels of ``labels_path``, chunk for chunk.
+
+    ``clouds`` must be chunks of exactly ``chunk_size`` points (the last may be shorter).
+    A label file with another number of lines raises :class:`DataFormatError`.
+    """
+    label_chunks = iter_labels(labels_path, chunk_size=chunk_size)
+    n_points = 0
+    for cloud in clouds:
+        labels = next(label_chunks, None)
+        n_labels = n_points + (0 if labels is None else labels.size)
+        n_points += cloud.n_points
+        if labels is None or labels.size < cloud.n_points:
+            raise DataFormatError(
+                f"expected one label per point of {path.name}, found only {n_labels} labels "
+                f"for at least {n_points} points",
+                path=str(labels_path),
+            )
+        if labels.size > cloud.n_points:  # only the last point chunk can be short
+            n_labels += sum(chunk.size for chunk in label_chunks)
+            break
+        yield cloud.with_labels(labels)
+    else:
+        n_labels = n_points + sum(chunk.size for chunk in label_chunks)
+        if n_labels == n_points:
+            return
+    raise DataFormatError(
+        f"expected one label per point of {path.name} ({n_points} points), found {n_labels} labels",
+        path=str(labels_path),
+    )
 
 
 def _as_label_array(chunk: ArrayLike, *, path: Path, first_index: int) -> NDArray[np.uint8]:

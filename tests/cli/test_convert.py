@@ -1,0 +1,150 @@
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from semantic3d.cli.app import app
+from semantic3d.io.ascii import write_ascii_points
+from semantic3d.io.formats import read_points, write_points
+from semantic3d.io.labels import read_labels, write_labels
+from semantic3d.io.las import read_las
+from tests.factories import random_cloud
+
+runner = CliRunner()
+
+
+@pytest.fixture
+def scan(tmp_path: Path) -> Path:
+    """A labelled ASCII scan with its sibling ``.labels`` file, georeferenced."""
+    path = tmp_path / "scan.txt"
+    write_ascii_points(
+        path, [random_cloud(2500, seed=21, offset=870_000.0)], labels_path=tmp_path / "scan.labels"
+    )
+    return path
+
+
+def test_ascii_to_las_takes_the_sibling_labels(scan: Path, tmp_path: Path) -> None:
+    result = runner.invoke(
+        app, ["convert", str(scan), str(tmp_path / "out.laz"), "--chunk-size", "700"]
+    )
+    assert result.exit_code == 0, result.output
+    assert "wrote 2,500 points to" in result.stdout and "with labels" in result.stdout
+    assert read_las(tmp_path / "out.laz").equals(read_points(scan))
+
+
+def test_las_to_ascii_writes_the_labels_beside(scan: Path, tmp_path: Path) -> None:
+    runner.invoke(app, ["convert", str(scan), str(tmp_path / "out.las")])
+    result = runner.invoke(app, ["convert", str(tmp_path / "out.las"), str(tmp_path / "back.txt")])
+    assert result.exit_code == 0, result.output
+    assert "their labels to" in result.stdout and "back.labels" in result.stdout
+    assert (tmp_path / "back.txt").read_bytes() == scan.read_bytes()  # byte for byte
+    assert (tmp_path / "back.labels").read_bytes() == (tmp_path / "scan.labels").read_bytes()
+
+
+def test_labels_option_supplies_the_labels(tmp_path: Path) -> None:
+    cloud = random_cloud(100, seed=3, labels=False)
+    write_points(tmp_path / "points.ply", [cloud])
+    labels = np.arange(100, dtype=np.uint8) % 9
+    write_labels(tmp_path / "truth.labels", [labels])
+    result = runner.invoke(
+        app,
+        [
+            "convert",
+            str(tmp_path / "points.ply"),
+            str(tmp_path / "out.xyz"),
+            "--labels",
+            str(tmp_path / "truth.labels"),
+        ],
+    )
+    assert result.exit_code == 0, result.output
+    assert np.array_equal(read_labels(tmp_path / "out.labels"), labels)
+
+
+def test_convert_to_a_cache_folder_and_back(scan: Path, tmp_path: Path) -> None:
+    result = runner.invoke(app, ["convert", str(scan), str(tmp_path / "scan.cache")])
+    assert result.exit_code == 0, result.output
+    assert (tmp_path / "scan.cache" / "meta.json").is_file()
+    result = runner.invoke(
+        app, ["convert", str(tmp_path / "scan.cache"), str(tmp_path / "copy.ply")]
+    )
+    assert result.exit_code == 0, result.output
+    assert read_points(tmp_path / "copy.ply").equals(read_points(scan))
+
+
+@pytest.mark.parametrize(
+    ("make_args", "message"),
+    [
+        (
+            lambda d: ["convert", str(d / "scan.txt"), str(d / "out.csv")],
+            "expected a point file ending in one of",
+        ),
+        (
+            lambda d: ["convert", str(d / "scan.txt"), str(d / "scan.txt")],
+            "output is the input file",
+        ),
+        (lambda d: ["convert", str(d / "bad.las"), str(d / "out.ply")], "expected a LAS/LAZ file"),
+        (lambda d: ["info", str(d / "notes.md")], "expected a point file ending in one of"),
+        (
+            lambda d: ["convert", str(d / "scan.txt"), str(d / "scan.xyz")],
+            "output labels would overwrite the input labels",
+        ),
+    ],
+)
+def test_bad_inputs_print_one_red_line_and_exit_2(
+    scan: Path, tmp_path: Path, make_args: Callable[[Path], list[str]], message: str
+) -> None:
+    (tmp_path / "bad.las").write_bytes(b"garbage" * 50)
+    (tmp_path / "notes.md").write_text("hello")
+    result = runner.invoke(app, make_args(tmp_path))
+    assert result.exit_code == 2
+    assert message in result.stderr
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error:")
+
+
+def test_truncated_input_fails_cleanly_and_leaves_no_output(scan: Path, tmp_path: Path) -> None:
+    runner.invoke(app, ["convert", str(scan), str(tmp_path / "full.laz")])
+    data = (tmp_path / "full.laz").read_bytes()
+    (tmp_path / "cut.laz").write_bytes(data[: len(data) // 2])
+    result = runner.invoke(app, ["convert", str(tmp_path / "cut.laz"), str(tmp_path / "out.ply")])
+    assert result.exit_code == 2
+    assert "cut.laz: expected 2500 points" in result.stderr
+    assert not (tmp_path / "out.ply").exists()
+
+
+def test_info_shows_count_bounds_columns_and_classes(scan: Path) -> None:
+    cloud = read_points(scan)
+    result = runner.invoke(app, ["info", str(scan), "--chunk-size", "1000"])
+    assert result.exit_code == 0, result.output
+    out = result.stdout
+    assert "2,500" in out
+    assert f"{cloud.xyz[:, 0].min():.3f}" in out and f"{cloud.xyz[:, 0].max():.3f}" in out
+    assert "intensity text" in out and "label text (in scan.labels)" in out
+    assert cloud.labels is not None
+    counts = np.bincount(cloud.labels, minlength=9)
+    for name, value in [("man-made terrain", 1), ("cars", 8), ("unlabelled", 0)]:
+        line = next(row for row in out.splitlines() if name in row)
+        assert f"{counts[value]:,}" in line
+
+
+def test_info_on_an_unlabelled_las_file(tmp_path: Path) -> None:
+    write_points(tmp_path / "plain.las", [random_cloud(10, labels=False)])
+    result = runner.invoke(app, ["info", str(tmp_path / "plain.las")])
+    assert result.exit_code == 0, result.output
+    assert "semantic3d_intensity int32" in result.stdout
+    assert "labels" in result.stdout and "none" in result.stdout
+    assert "share" not in result.stdout  # no histogram table
+
+
+def test_info_on_a_real_sample(shared_data: Path) -> None:
+    path = shared_data / "ign-lidarhd-toy" / "870000_6618000_subset.txt"
+    if not path.is_file():
+        pytest.skip("IGN sample not available")
+    result = runner.invoke(app, ["info", str(path)])
+    assert result.exit_code == 0, result.output
+    assert "70,840" in result.stdout and "buildings" in result.stdout
+    assert "870200.010" in result.stdout  # georeferenced bounds to the millimetre
