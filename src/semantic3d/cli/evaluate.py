@@ -1,9 +1,292 @@
-"""Placeholder: commands of this group are registered here."""
+"""``semantic3d validate | evaluate | stats | agreement``: the benchmark's evaluation commands.
+
+Thin shells over :mod:`semantic3d.evaluation`: parse arguments, call the library with a
+progress bar, present the result. An invalid submission prints every problem and exits
+with code 1; other package errors print one red line and exit with code 2.
+"""
 
 from __future__ import annotations
 
+import math
+from collections.abc import Sequence
+from enum import StrEnum
+from pathlib import Path
+
+import numpy as np
 import typer
+from rich.markup import escape
+from rich.table import Table
+
+from semantic3d.cli.console import console, err_console, fail, guarded, progress_bar
+from semantic3d.core.classes import CLASSES
+from semantic3d.core.errors import SubmissionError
+from semantic3d.evaluation.agreement import (
+    DEFAULT_MAX_DISTANCE_M,
+    DEFAULT_TILE_SIZE_M,
+    AgreementResult,
+    compute_label_agreement_files,
+)
+from semantic3d.evaluation.challenge import Challenge, custom_challenge, load_challenge
+from semantic3d.evaluation.evaluate import evaluate_submission
+from semantic3d.evaluation.report import (
+    results_table_rows,
+    write_html,
+    write_json,
+    write_markdown,
+)
+from semantic3d.evaluation.result import EvaluationResult, MethodInfo
+from semantic3d.evaluation.stats import ClassStatistics, class_table, compute_class_statistics
+from semantic3d.evaluation.submission import validate_submission
+
+INVALID_SUBMISSION_EXIT = 1
+
+
+class ChallengeName(StrEnum):
+    """Challenges selectable on the command line."""
+
+    SEMANTIC_8 = "semantic-8"
+    REDUCED_8 = "reduced-8"
+    CUSTOM = "custom"
+
+
+_CHALLENGE_HELP = (
+    "semantic-8 or reduced-8 (official names and line counts), or custom: every "
+    "*.labels file of --gt is a scan and the submission uses the same file names."
+)
+
+
+def _challenge(name: ChallengeName, gt: Path | None, *, need_ground_truth: bool) -> Challenge:
+    if name is ChallengeName.CUSTOM:
+        if gt is None:
+            raise fail("--challenge custom needs --gt DIR (the folder of ground-truth .labels)")
+        return custom_challenge(gt)
+    if gt is None and need_ground_truth:
+        raise fail(f"--challenge {name.value} needs --gt DIR to evaluate (ground truth)")
+    return load_challenge(name.value, ground_truth_root=gt)
+
+
+def _print_invalid(exc: SubmissionError) -> typer.Exit:
+    count = len(exc.problems)
+    err_console.print(
+        f"[bold red]invalid submission[/] {escape(exc.source or '')}: "
+        f"{count} problem{'s' if count != 1 else ''}",
+        highlight=False,
+    )
+    for problem in exc.problems:
+        err_console.print(f"  [red]-[/] {escape(problem)}", highlight=False, soft_wrap=True)
+    return typer.Exit(code=INVALID_SUBMISSION_EXIT)
+
+
+def validate(
+    submission: Path = typer.Argument(..., help="A .zip archive or a folder of .labels files."),
+    challenge: ChallengeName = typer.Option(
+        ChallengeName.CUSTOM, "--challenge", "-c", help=_CHALLENGE_HELP
+    ),
+    gt: Path | None = typer.Option(
+        None, "--gt", file_okay=False, help="Folder of ground-truth .labels files."
+    ),
+) -> None:
+    """Check a submission: names, archive safety, values 1..8, line counts (all problems)."""
+    with guarded():
+        spec = _challenge(challenge, gt, need_ground_truth=False)
+        with progress_bar(bytes_=True) as progress:
+            task = progress.add_task(f"checking {submission.name}", total=None)
+            try:
+                validate_submission(
+                    submission,
+                    challenge=spec,
+                    progress=lambda done, total: progress.update(task, completed=done, total=total),
+                )
+            except SubmissionError as exc:
+                progress.stop()
+                raise _print_invalid(exc) from None
+        console.print(
+            f"[green]valid[/]: {submission} holds the {len(spec.scans)} files of {spec.name}",
+            highlight=False,
+        )
+
+
+def _format(value: float) -> str:
+    return "absent" if math.isnan(value) else f"{value:.3f}"
+
+
+def _results_table(result: EvaluationResult) -> Table:
+    header, rows = results_table_rows([result])
+    table = Table(title=f"{result.challenge} (protocol v{result.protocol_version})")
+    for column in header:
+        table.add_column(column, justify="left" if column == "Method" else "right")
+    for row in rows:
+        table.add_row(*row)
+    return table
+
+
+def evaluate(
+    gt: Path = typer.Option(
+        ..., "--gt", exists=True, file_okay=False, help="Folder of ground-truth .labels files."
+    ),
+    pred: Path = typer.Option(
+        ..., "--pred", exists=True, help="The submission: a .zip or a folder of .labels files."
+    ),
+    challenge: ChallengeName = typer.Option(
+        ChallengeName.CUSTOM, "--challenge", "-c", help=_CHALLENGE_HELP
+    ),
+    json_path: Path | None = typer.Option(
+        None, "--json", dir_okay=False, help="Write the full result (per scan included) as JSON."
+    ),
+    report: Path | None = typer.Option(
+        None, "--report", dir_okay=False, help="Write a self-contained HTML report."
+    ),
+    markdown: Path | None = typer.Option(
+        None, "--markdown", dir_okay=False, help="Write a Markdown report."
+    ),
+    method: str | None = typer.Option(None, "--method", help="Method name shown in reports."),
+    runtime_s: float | None = typer.Option(
+        None, "--runtime", min=0, help="The method's processing time in seconds (column T)."
+    ),
+    hardware: str | None = typer.Option(None, "--hardware", help="What the method ran on."),
+) -> None:
+    """Evaluate a submission against ground truth: IoU per class, mIoU, OA."""
+    with guarded():
+        spec = _challenge(challenge, gt, need_ground_truth=True)
+        info = None
+        if method is not None or runtime_s is not None or hardware is not None:
+            info = MethodInfo(name=method or pred.stem, runtime_s=runtime_s, hardware=hardware)
+        with progress_bar(bytes_=True) as progress:
+            task = progress.add_task(f"evaluating {pred.name}", total=None)
+            try:
+                result = evaluate_submission(
+                    pred,
+                    challenge=spec,
+                    method=info,
+                    progress=lambda done, total: progress.update(task, completed=done, total=total),
+                )
+            except SubmissionError as exc:
+                progress.stop()
+                raise _print_invalid(exc) from None
+        console.print(_results_table(result))
+        absent = [CLASSES[i].name for i in result.scores.absent_indices]
+        if absent:
+            console.print(f"absent (left out of mIoU): {', '.join(absent)}", highlight=False)
+        console.print(f"{result.n_points:,} labelled points scored", highlight=False)
+        for path, writer, what in (
+            (json_path, write_json, "JSON"),
+            (markdown, write_markdown, "Markdown"),
+            (report, write_html, "HTML report"),
+        ):
+            if path is not None:
+                writer(path, result)
+                console.print(f"wrote {what} to {path}", highlight=False)
+
+
+def _stats_table(statistics: ClassStatistics) -> Table:
+    header, rows = class_table(statistics)
+    table = Table(title="points per class")
+    for column in header:
+        table.add_column(column, justify="left" if column == "Split" else "right")
+    for row in rows:
+        table.add_row(row[0], row[1], *(f"{int(v):,}" for v in row[2:]))
+    return table
+
+
+def stats(
+    folder: Path = typer.Argument(
+        ..., exists=True, file_okay=False, help="A folder of .labels files (searched recursively)."
+    ),
+    plot: Path | None = typer.Option(
+        None, "--plot", dir_okay=False, help="Write the log-scale bar chart (PNG)."
+    ),
+) -> None:
+    """Points per class per split (benchmark splits by scan name, else custom)."""
+    with guarded():
+        with progress_bar(bytes_=True) as progress:
+            task = progress.add_task(f"counting {folder.name}", total=None)
+            statistics = compute_class_statistics(
+                folder,
+                progress=lambda done, total: progress.update(task, completed=done, total=total),
+            )
+        console.print(_stats_table(statistics))
+        if plot is not None:
+            from semantic3d.viz.plots import figure_to_png, plot_class_histogram
+
+            figure = plot_class_histogram(statistics.class_counts_by_split())
+            plot.write_bytes(figure_to_png(figure))
+            console.print(f"wrote {plot}", highlight=False)
+
+
+def _agreement_table(result: AgreementResult) -> Table:
+    table = Table(title=f"label agreement (nearest neighbour within {result.max_distance_m} m)")
+    table.add_column("direction")
+    table.add_column("matched", justify="right")
+    table.add_column("mIoU", justify="right")
+    table.add_column("OA", justify="right")
+    for cls in CLASSES:
+        table.add_column(f"IoU {cls.value} {cls.name}", justify="right")
+    for direction in result.directions:
+        s = direction.scores
+        matched = direction.matched_fraction
+        table.add_row(
+            direction.name,
+            f"{direction.n_matched:,} ({_percent(matched)})",
+            _format(s.mean_iou),
+            _format(s.overall_accuracy),
+            *(
+                "excluded" if cls.value in result.excluded_values else _format(float(s.iou[i]))
+                for i, cls in enumerate(CLASSES)
+            ),
+        )
+    return table
+
+
+def _percent(value: float) -> str:
+    return "n/a" if math.isnan(value) else f"{100 * value:.1f} %"
+
+
+def agreement(
+    a_points: Path = typer.Argument(..., exists=True, dir_okay=False, help="Scan A points."),
+    a_labels: Path = typer.Argument(..., exists=True, dir_okay=False, help="Scan A labels."),
+    b_points: Path = typer.Argument(..., exists=True, dir_okay=False, help="Scan B points."),
+    b_labels: Path = typer.Argument(..., exists=True, dir_okay=False, help="Scan B labels."),
+    max_distance: float = typer.Option(
+        DEFAULT_MAX_DISTANCE_M, "--max-distance", min=0.0, help="Matching radius in metres."
+    ),
+    tile_size: float = typer.Option(
+        DEFAULT_TILE_SIZE_M, "--tile-size", min=0.0, help="XY tile side in metres (memory)."
+    ),
+    plot: Path | None = typer.Option(
+        None, "--plot", dir_okay=False, help="Write the per-class IoU plot of both directions."
+    ),
+) -> None:
+    """Label agreement of two overlapping scans: transfer labels A→B and B→A, score them."""
+    if not 0 < max_distance < tile_size:
+        raise fail(
+            f"expected 0 < --max-distance < --tile-size, found {max_distance} and {tile_size}"
+        )
+    with guarded():
+        with progress_bar() as progress:
+            task = progress.add_task("matching tiles", total=None)
+            result = compute_label_agreement_files(
+                a_points,
+                a_labels,
+                b_points,
+                b_labels,
+                max_distance_m=max_distance,
+                tile_size_m=tile_size,
+                progress=lambda done, total: progress.update(task, completed=done, total=total),
+            )
+        console.print(_agreement_table(result))
+        if plot is not None:
+            from semantic3d.viz.plots import figure_to_png, plot_agreement
+
+            ious: dict[str, Sequence[float] | np.ndarray] = {
+                d.name: d.scores.iou for d in result.directions
+            }
+            plot.write_bytes(figure_to_png(plot_agreement(ious)))
+            console.print(f"wrote {plot}", highlight=False)
 
 
 def register(app: typer.Typer) -> None:
-    """Add this group's commands to ``app``."""
+    """Add ``validate``, ``evaluate``, ``stats`` and ``agreement`` to ``app``."""
+    app.command("validate")(validate)
+    app.command("evaluate")(evaluate)
+    app.command("stats")(stats)
+    app.command("agreement")(agreement)

@@ -1,0 +1,226 @@
+"""``evaluate_submission``: the reference evaluator of the semantic3D.net protocol.
+
+One function for every shell: the CLI and the benchmark server both call it. Each scan's
+ground truth and prediction are streamed side by side, chunk by chunk, into a
+:class:`~semantic3d.metrics.ConfusionMatrix`; memory stays constant whatever the file
+sizes. Validation happens in the same pass (values, line counts) and every problem is
+collected before anything is reported, so an invalid submission gets one
+:class:`~semantic3d.core.errors.SubmissionError` listing them all.
+"""
+
+from __future__ import annotations
+
+import logging
+from concurrent.futures import Future, ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from semantic3d.core.errors import DataFormatError, SubmissionError
+from semantic3d.evaluation.challenge import Challenge, ChallengeScan
+from semantic3d.evaluation.contents import (
+    READ_FAILURES,
+    SubmissionFile,
+    SubmissionLimits,
+    open_submission,
+    read_failure,
+)
+from semantic3d.evaluation.labelstream import LabelStream
+from semantic3d.evaluation.protocol import Protocol, load_protocol
+from semantic3d.evaluation.result import EvaluationResult, MethodInfo, ScanResult
+from semantic3d.evaluation.submission import ProgressCallback, line_count_problem
+from semantic3d.metrics.confusion import ConfusionMatrix
+
+logger = logging.getLogger(__name__)
+
+DEFAULT_EVALUATION_CHUNK = 1 << 22
+"""Label pairs accumulated at a time (4 Mi: two 4 MiB value buffers)."""
+
+
+class _Progress:
+    def __init__(self, callback: ProgressCallback | None, total: int) -> None:
+        self.callback = callback
+        self.total = total
+        self.done = 0
+
+    def report(self, extra: int = 0) -> None:
+        if self.callback is not None:
+            self.callback(min(self.done + extra, self.total), self.total)
+
+
+class _PredictionUnreadableError(Exception):
+    """The prediction stream failed mid-way (corrupt member, size cap)."""
+
+
+def _read_prediction(pred: LabelStream, n_values: int) -> NDArray[np.uint8]:
+    try:
+        return pred.read(n_values)
+    except READ_FAILURES as exc:
+        raise _PredictionUnreadableError(exc) from exc
+
+
+def _stream_pair(
+    truth: LabelStream,
+    pred: LabelStream,
+    matrix: ConfusionMatrix,
+    *,
+    chunk_size: int,
+    progress: _Progress,
+) -> None:
+    """Accumulate (truth, prediction) chunks, then parse what is left of either stream.
+
+    The ground truth is parsed one chunk ahead in a worker thread (the kernels and file
+    reads release the GIL) while this thread inflates and parses the prediction.
+    """
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="semantic3d-truth") as pool:
+        pending: Future[NDArray[np.uint8]] | None = pool.submit(truth.read, chunk_size)
+        while pending is not None:
+            y_true = pending.result()
+            full = y_true.shape[0] == chunk_size
+            pending = pool.submit(truth.read, chunk_size) if full else None
+            y_pred = _read_prediction(pred, y_true.shape[0])
+            n = y_pred.shape[0]
+            if n and not pred.has_problems:
+                matrix.update(y_true[:n], y_pred)
+            progress.report(truth.bytes_read)
+            if n < y_true.shape[0]:
+                break
+        if pending is not None:
+            pending.result()
+    truth.drain()
+    try:
+        pred.drain()
+    except READ_FAILURES as exc:
+        raise _PredictionUnreadableError(exc) from exc
+
+
+def _evaluate_scan(
+    scan: ChallengeScan,
+    gt_path: Path,
+    entry: SubmissionFile,
+    *,
+    protocol: Protocol,
+    chunk_size: int,
+    problems: list[str],
+    progress: _Progress,
+) -> ConfusionMatrix | None:
+    """Stream one (ground truth, prediction) pair; None when the prediction has problems."""
+    matrix = ConfusionMatrix(protocol.n_classes)
+    with gt_path.open("rb", buffering=0) as gt_handle:
+        truth = LabelStream(gt_handle, source=str(gt_path), low=0, high=protocol.n_classes)
+        try:
+            pred_handle = entry.open()
+        except READ_FAILURES as exc:
+            problems.append(read_failure(entry.name, exc))
+            return None
+        with pred_handle:
+            pred = LabelStream(
+                pred_handle,
+                source=entry.name,
+                low=protocol.prediction_min,
+                high=protocol.prediction_max,
+            )
+            try:
+                _stream_pair(truth, pred, matrix, chunk_size=chunk_size, progress=progress)
+            except _PredictionUnreadableError as exc:
+                cause = exc.__cause__ if exc.__cause__ is not None else exc
+                problems.append(read_failure(entry.name, cause))
+                return None
+    truth_problems = truth.problems()
+    if truth_problems:
+        raise DataFormatError("invalid ground truth: " + "; ".join(truth_problems))
+    if scan.n_points is not None and scan.n_points != truth.n_lines:
+        raise DataFormatError(
+            f"expected {scan.n_points} lines for scan {scan.name} (protocol "
+            f"v{protocol.version}), found {truth.n_lines}",
+            path=str(gt_path),
+        )
+    scan_problems = pred.problems()
+    mismatch = line_count_problem(entry.name, expected=truth.n_lines, found=pred.n_lines)
+    if mismatch:
+        scan_problems.append(mismatch)
+    problems.extend(scan_problems)
+    return None if scan_problems else matrix
+
+
+def evaluate_submission(
+    submission: Path,
+    *,
+    challenge: Challenge,
+    method: MethodInfo | None = None,
+    limits: SubmissionLimits = SubmissionLimits(),
+    progress: ProgressCallback | None = None,
+    chunk_size: int = DEFAULT_EVALUATION_CHUNK,
+) -> EvaluationResult:
+    """Validate and score a submission (zip archive or folder) against ``challenge``.
+
+    Args:
+        submission: a ``.zip`` or a folder of ``.labels`` files named as the challenge says.
+        challenge: from :func:`load_challenge` (with ground truth) or
+            :func:`custom_challenge`.
+        method: name, runtime and hardware shown in reports.
+        limits: archive safety caps.
+        progress: called as ``progress(done_bytes, total_bytes)`` of ground truth read.
+        chunk_size: label pairs accumulated at a time.
+
+    Raises:
+        SubmissionError: the submission is invalid; ``.problems`` lists every problem.
+        MissingGroundTruthError: a scan of the challenge has no ground truth.
+        DataFormatError: a ground-truth file is invalid or disagrees with the protocol.
+    """
+    challenge.require_ground_truth()
+    protocol = load_protocol(challenge.protocol_version)
+    total = ConfusionMatrix(protocol.n_classes)
+    per_scan: list[ScanResult] = []
+    gt_bytes = sum(s.ground_truth.stat().st_size for s in challenge.scans if s.ground_truth)
+    tracker = _Progress(progress, gt_bytes)
+    with open_submission(submission, challenge=challenge, limits=limits) as contents:
+        problems = contents.problems
+        for scan in challenge.scans:
+            gt_path = scan.ground_truth
+            if gt_path is None:  # unreachable after require_ground_truth(); keeps mypy sure
+                continue
+            entry = contents.files.get(scan.submission_name)
+            if entry is not None:
+                matrix = _evaluate_scan(
+                    scan,
+                    gt_path,
+                    entry,
+                    protocol=protocol,
+                    chunk_size=chunk_size,
+                    problems=problems,
+                    progress=tracker,
+                )
+                if matrix is not None and not problems:
+                    total.merge(matrix)
+                    per_scan.append(
+                        ScanResult(
+                            scan.name,
+                            scan.submission_name,
+                            matrix.compute(),
+                            matrix.compute_scores(),
+                        )
+                    )
+            tracker.done += gt_path.stat().st_size
+            tracker.report()
+    if problems:
+        raise SubmissionError(problems, source=str(submission))
+    scores = total.compute_scores()
+    logger.info(
+        "%s: %s, mIoU %.4f, OA %.4f over %d points",
+        submission,
+        challenge.name,
+        scores.mean_iou,
+        scores.overall_accuracy,
+        scores.n_points,
+    )
+    return EvaluationResult(
+        challenge=challenge.name,
+        protocol_version=protocol.version,
+        confusion=total.compute(),
+        scores=scores,
+        n_points=scores.n_points,
+        method=method,
+        per_scan=tuple(per_scan),
+    )

@@ -1,0 +1,98 @@
+"""Label agreement of two overlapping scans with a known mislabelled region.
+
+Scan A is a 0.1 m grid over x in [0, 20) m, scan B the same grid over x in [10, 30) m
+shifted by (-1 cm, -1 cm): in the overlap every point has exactly one partner 1.4 cm
+away, whose tile often differs (tile edges fall between partners). Ground truth is class
+1 for grid columns i < 150 and class 5 beyond. A holds scanning artefacts (7) in columns
+120..124; B leaves 100 points unlabelled (0) and mislabels columns 160..169 as class 3.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from semantic3d.core.errors import ShapeError
+from semantic3d.evaluation.agreement import (
+    compute_label_agreement,
+    compute_label_agreement_files,
+)
+from semantic3d.io.ascii import write_ascii_points
+from tests.evaluation.conftest import overlapping_scans
+
+
+def _expected_a_to_b() -> np.ndarray:
+    matrix = np.zeros((8, 8), np.int64)
+    matrix[0, 0] = 50 * 100 - 500 - 100  # class 1, minus A's artefacts and B's unlabelled
+    matrix[4, 4] = 40 * 100
+    matrix[2, 4] = 10 * 100  # B says high vegetation where A says buildings
+    return matrix
+
+
+def test_known_mislabelled_region_in_both_directions() -> None:
+    a, b = overlapping_scans()
+    result = compute_label_agreement([a], [b], tile_size_m=50.0)
+    a_to_b, b_to_a = result.directions
+    assert (a_to_b.name, b_to_a.name) == ("A→B", "B→A")
+    np.testing.assert_array_equal(a_to_b.confusion, _expected_a_to_b())
+    np.testing.assert_array_equal(b_to_a.confusion, _expected_a_to_b().T)
+    assert (a_to_b.n_points, a_to_b.n_matched) == (20_000 - 100, 9_400)
+    assert (b_to_a.n_points, b_to_a.n_matched) == (20_000 - 500, 9_400)
+    # A→B: receiving labels are B's; IoU_5 = 4000 / (4000 + 1000), IoU_3 = 0
+    np.testing.assert_allclose(a_to_b.scores.iou[[0, 2, 4]], [1.0, 0.0, 0.8])
+    assert a_to_b.scores.mean_iou == pytest.approx(0.6)
+    assert a_to_b.scores.recall[2] == 0.0 and np.isnan(a_to_b.scores.precision[2])
+    assert np.isnan(b_to_a.scores.recall[2]) and b_to_a.scores.precision[2] == 0.0
+    assert np.isnan(a_to_b.scores.iou[6])  # artefacts excluded
+    assert result.excluded_values == (0, 7)
+
+
+def test_small_tiles_and_disk_spill_change_nothing(tmp_path: Path) -> None:
+    a, b = overlapping_scans()
+    whole = compute_label_agreement([a], [b], tile_size_m=50.0)
+    progress: list[tuple[int, int]] = []
+    tiled = compute_label_agreement(
+        [a[:7_000], a[7_000:]],
+        [b[:333], b[333:]],
+        tile_size_m=1.0,
+        buffer_points=1_000,
+        spill_directory=tmp_path,
+        progress=lambda done, total: progress.append((done, total)),
+    )
+    for left, right in zip(whole.directions, tiled.directions, strict=True):
+        np.testing.assert_array_equal(left.confusion, right.confusion)
+        assert left.n_matched == right.n_matched
+    done, total = progress[-1]
+    assert done == total > 300  # 30 x 10 one-metre tiles and a row and column of B's shift
+    assert list(tmp_path.iterdir()) == []  # spill folder removed
+
+
+def test_distance_threshold() -> None:
+    a, b = overlapping_scans()
+    result = compute_label_agreement([a], [b], max_distance_m=0.01)  # partners are 1.4 cm away
+    assert result.a_to_b.n_matched == result.b_to_a.n_matched == 0
+    assert np.isnan(result.a_to_b.scores.mean_iou)
+
+
+def test_scans_on_disk(tmp_path: Path) -> None:
+    a, b = overlapping_scans()
+    for name, cloud in (("a", a), ("b", b)):
+        write_ascii_points(
+            tmp_path / f"{name}.txt", [cloud], labels_path=tmp_path / f"{name}.labels"
+        )
+    result = compute_label_agreement_files(
+        tmp_path / "a.txt", tmp_path / "a.labels", tmp_path / "b.txt", tmp_path / "b.labels"
+    )
+    np.testing.assert_array_equal(result.a_to_b.confusion, _expected_a_to_b())
+
+
+def test_bad_input() -> None:
+    a, b = overlapping_scans()
+    with pytest.raises(ShapeError, match="scan A: expected labelled points"):
+        compute_label_agreement([a.with_labels(None)], [b])
+    with pytest.raises(ValueError, match="max_distance_m: expected a positive distance"):
+        compute_label_agreement([a], [b], max_distance_m=0.0)
+    with pytest.raises(ValueError, match="margin_m: expected 0 <= margin < tile size"):
+        compute_label_agreement([a], [b], max_distance_m=2.0, tile_size_m=1.0)
