@@ -1,9 +1,86 @@
-"""Placeholder: commands of this group are registered here."""
+"""``semantic3d simulate``: labelled terrestrial laser scans of procedural scenes.
+
+A thin shell over :func:`semantic3d.datasets.simulator.simulate`: it checks the arguments
+(through the library's validators, so errors read the same), shows progress and prints a
+summary of what was written.
+"""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import typer
+from rich.table import Table
+
+from semantic3d.cli.console import console, guarded, progress_bar
+from semantic3d.core import CLASSES
+from semantic3d.datasets.simulator import MAX_STATIONS, SceneName, simulate
+from semantic3d.datasets.simulator.scanner import validate_n_points
+from semantic3d.datasets.simulator.scenes import validate_scene_name
+from semantic3d.datasets.simulator.simulation import prepare_output_folder, validate_stations
+from semantic3d.io.chunks import DEFAULT_CHUNK_SIZE
+
+_SCENES = ", ".join(s.value for s in SceneName)
+
+
+def simulate_command(
+    scene: str = typer.Option("village", "--scene", help=f"Scene to scan: {_SCENES}."),
+    stations: int = typer.Option(
+        1, "--stations", help=f"Stations to scan from, 1..{MAX_STATIONS}."
+    ),
+    points: int = typer.Option(
+        1_000_000,
+        "--points",
+        help="About this many points per station (the step is solved for it).",
+    ),
+    seed: int = typer.Option(0, "--seed", help="Seed of the scene layout and the scanner noise."),
+    out: Path = typer.Option(Path("simulated"), "--out", help="Output folder (created if needed)."),
+    chunk_size: int = typer.Option(
+        DEFAULT_CHUNK_SIZE, "--chunk-size", min=1, help="Points per streamed chunk."
+    ),
+) -> None:
+    """Simulate static laser scans: NAME_stationK.txt + .labels per station and NAME.json."""
+    with guarded():
+        scene_name = validate_scene_name(scene)
+        validate_n_points(points)
+        validate_stations(stations)
+        prepare_output_folder(out)
+        with progress_bar() as bar:
+            task = bar.add_task(f"scanning {scene_name.value}", total=None)
+
+            def progress(done: int, total: int) -> None:
+                bar.update(task, completed=done, total=max(total, done))
+
+            result = simulate(
+                scene_name,
+                out=out,
+                n_points=points,
+                stations=stations,
+                seed=seed,
+                chunk_size=chunk_size,
+                progress=progress,
+            )
+            bar.update(task, completed=result.n_points, total=result.n_points)
+    table = Table(title=f"{result.scene} (seed {result.seed})", title_justify="left")
+    table.add_column("station")
+    table.add_column("points", justify="right")
+    table.add_column("file")
+    table.add_column("largest classes")
+    for scan in result.scans:
+        shares = sorted(
+            ((scan.class_counts[c.value] / max(scan.n_points, 1), c.name) for c in CLASSES),
+            reverse=True,
+        )
+        table.add_row(
+            scan.station.name,
+            f"{scan.n_points:,}",
+            scan.points_path.name,
+            ", ".join(f"{name} {share:.0%}" for share, name in shares[:3]),
+        )
+    console.print(table)
+    console.print(f"poses and settings: {result.sidecar_path}", highlight=False, soft_wrap=True)
 
 
 def register(app: typer.Typer) -> None:
-    """Add this group's commands to ``app``."""
+    """Add ``simulate`` to ``app``."""
+    app.command("simulate")(simulate_command)
