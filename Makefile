@@ -19,10 +19,13 @@ $(VENV)/.test-installed: pyproject.toml | $(BIN)/python
 	$(BIN)/python -m pip install --quiet -e '.[test]'
 	touch $@ $(VENV)/.demo-installed
 
+DEMO_ARGS ?= --serve
+
 demo: $(VENV)/.demo-installed
-	$(BIN)/semantic3d demo
+	$(BIN)/semantic3d demo $(DEMO_ARGS)
 
 test: $(VENV)/.test-installed
+	bash scripts/install-server-test-deps.sh
 	$(BIN)/python -m pytest -n 2 $(PYTEST_ARGS)
 
 lint: $(VENV)/.test-installed
@@ -32,7 +35,7 @@ lint: $(VENV)/.test-installed
 	$(BIN)/lint-imports
 
 bench: $(VENV)/.test-installed
-	$(BIN)/python benchmarks/bench_io.py
+	for script in benchmarks/bench_*.py; do $(BIN)/python $$script || exit 1; done
 
 clean:
 	rm -rf $(VENV) build dist .pytest_cache .ruff_cache .mypy_cache demo-output

@@ -30,6 +30,8 @@ _COMMAND_MODULES = (
     "semantic3d.cli.download",
     "semantic3d.cli.simulate",
     "semantic3d.cli.evaluate",
+    "semantic3d.cli.baseline",
+    "semantic3d.cli.server",
 )
 
 

@@ -1,0 +1,349 @@
+"""Benchmark server commands: ``serve``, ``worker``, ``submit`` and the ``admin`` group.
+
+Server-side commands read their settings from ``SEMANTIC3D_*`` environment variables
+(``--data-dir`` and ``--database-url`` override the two that matter most).
+"""
+
+from __future__ import annotations
+
+import signal
+import threading
+from pathlib import Path
+from typing import Any
+
+import typer
+
+from semantic3d.cli.console import console, err_console, guarded, progress_bar
+
+_DATA_DIR = typer.Option(
+    None, "--data-dir", help="Data folder [env SEMANTIC3D_DATA_DIR, default ./semantic3d-data]."
+)
+_DATABASE_URL = typer.Option(
+    None, "--database-url", help="SQLAlchemy URL [env SEMANTIC3D_DATABASE_URL; default SQLite]."
+)
+
+
+def _settings(data_dir: Path | None, database_url: str | None, **extra: Any) -> Any:
+    from semantic3d.core.errors import require
+
+    require("fastapi", "server")
+    from semantic3d.server.settings import load_settings
+
+    overrides = dict(extra)
+    if data_dir is not None:
+        overrides["data_dir"] = data_dir
+    if database_url is not None:
+        overrides["database_url"] = database_url
+    return load_settings(**overrides)
+
+
+def _database(settings: Any) -> Any:
+    from semantic3d.server.db import create_db_engine, create_session_factory, run_migrations
+
+    engine = create_db_engine(settings)
+    run_migrations(engine)
+    return create_session_factory(engine)
+
+
+def serve(
+    host: str = typer.Option("127.0.0.1", "--host", help="Address to listen on."),
+    port: int = typer.Option(8000, "--port", help="Port to listen on."),
+    worker: bool | None = typer.Option(
+        None,
+        "--worker/--no-worker",
+        help="Run the evaluation worker in this process [default: yes with SQLite].",
+    ),
+    data_dir: Path | None = _DATA_DIR,
+    database_url: str | None = _DATABASE_URL,
+    proxy_headers: bool = typer.Option(
+        False, "--proxy-headers", help="Trust X-Forwarded-* from 127.0.0.1 (behind nginx)."
+    ),
+) -> None:
+    """Run the benchmark server (web pages and API) with uvicorn."""
+    with guarded():
+        import uvicorn
+
+        from semantic3d.server.app import create_app
+
+        extra = {} if worker is None else {"embedded_worker": worker}
+        settings = _settings(data_dir, database_url, **extra)
+        app = create_app(settings)
+        err_console.print(
+            f"semantic3d server on http://{host}:{port} · data {settings.data_dir}"
+            + (" · embedded worker" if settings.runs_embedded_worker else "")
+        )
+        uvicorn.run(
+            app,
+            host=host,
+            port=port,
+            log_level="info",
+            proxy_headers=proxy_headers,
+            timeout_keep_alive=30,
+        )
+
+
+def worker(
+    once: bool = typer.Option(False, "--once", help="Process at most one job, then exit."),
+    data_dir: Path | None = _DATA_DIR,
+    database_url: str | None = _DATABASE_URL,
+) -> None:
+    """Evaluate queued submissions until interrupted (run as many as you like)."""
+    with guarded():
+        from semantic3d.server.worker import Worker
+
+        settings = _settings(data_dir, database_url)
+        runner = Worker(settings, _database(settings))
+        if once:
+            worked = runner.run_once()
+            console.print("evaluated one submission" if worked else "queue empty")
+            return
+        stop = threading.Event()
+
+        def _stop(signum: int, frame: object) -> None:
+            err_console.print("stopping: a running job is handed back to the queue")
+            stop.set()
+
+        signal.signal(signal.SIGTERM, _stop)
+        signal.signal(signal.SIGINT, _stop)
+        err_console.print(f"worker {runner.worker_id} on {settings.data_dir}")
+        runner.run(stop)
+
+
+def submit(
+    predictions: Path = typer.Argument(
+        ..., exists=True, dir_okay=False, help="Zip of .labels files."
+    ),
+    server: str = typer.Option(..., "--server", envvar="SEMANTIC3D_SERVER", help="Server URL."),
+    challenge: str = typer.Option(..., "--challenge", help="Challenge name, e.g. reduced-8."),
+    token: str = typer.Option(
+        ..., "--token", envvar="SEMANTIC3D_TOKEN", help="API token from your account page."
+    ),
+    method: str = typer.Option(..., "--method", help="Method name for the leaderboard."),
+    description: str = typer.Option("", "--description"),
+    paper_url: str = typer.Option("", "--paper-url"),
+    code_url: str = typer.Option("", "--code-url"),
+    runtime_s: float | None = typer.Option(None, "--runtime-s", help="Run time T in seconds."),
+    hardware: str | None = typer.Option(None, "--hardware", help="e.g. '1x A100, 32 cores'."),
+    wait: bool = typer.Option(False, "--wait", help="Wait for the evaluation and show scores."),
+    publish: bool = typer.Option(
+        False, "--publish", help="Publish once evaluated (implies --wait)."
+    ),
+    chunk_mib: int = typer.Option(64, "--chunk-mib", min=1, help="Upload chunk size in MiB."),
+) -> None:
+    """Upload a submission (chunked, resumable: run again to continue) and queue it."""
+    with guarded():
+        from semantic3d.evaluation import MethodInfo
+        from semantic3d.server.client import BenchmarkClient, file_sha256
+
+        info = MethodInfo(
+            name=method,
+            runtime_s=runtime_s,
+            hardware=hardware,
+            description=description,
+            paper_url=paper_url,
+            code_url=code_url,
+        )
+        size = predictions.stat().st_size
+        with BenchmarkClient(server, token) as client, progress_bar(bytes_=True) as bar:
+            task = bar.add_task("hashing", total=size)
+            digest = file_sha256(predictions, progress=lambda d, t: bar.update(task, completed=d))
+            bar.update(task, description="uploading", completed=0)
+            upload_id = client.upload(
+                predictions,
+                challenge=challenge,
+                chunk_bytes=chunk_mib << 20,
+                sha256=digest,
+                progress=lambda d, t: bar.update(task, completed=d),
+            )
+            bar.update(task, description="validating", completed=size)
+            result = client.finalize(upload_id, method=info, source=predictions.name)
+            submission_id = int(result["id"])
+            console.print(
+                f"submission #{submission_id} queued: {client.server}/submissions/{submission_id}"
+            )
+            if not (wait or publish):
+                return
+            eval_task = bar.add_task("evaluating", total=None)
+            final = client.wait(
+                submission_id,
+                progress=lambda d, t: bar.update(eval_task, completed=d, total=t),
+            )
+        if final["status"] == "failed":
+            from semantic3d.server.client import ClientError
+
+            raise ClientError(f"submission #{submission_id} failed: {final.get('error')}")
+        scores = final["scores"]
+        console.print(
+            f"mIoU {100 * scores['mean_iou']:.1f} · OA {100 * scores['overall_accuracy']:.1f} "
+            f"({scores['n_points']:,} points)"
+        )
+        if publish:
+            with BenchmarkClient(server, token) as client:
+                client.publish(submission_id)
+            console.print(f"published on {server.rstrip('/')}/challenges/{challenge}")
+
+
+admin_app = typer.Typer(
+    help="Administer a benchmark server (run where its data dir / database is).",
+    no_args_is_help=True,
+)
+
+
+@admin_app.command("add-challenge")
+def add_challenge(
+    name: str = typer.Argument(
+        ..., help="semantic-8, reduced-8 (the benchmark's) or a name for a custom challenge."
+    ),
+    ground_truth: Path = typer.Option(
+        ..., "--ground-truth", exists=True, file_okay=False, help="Folder of .labels files."
+    ),
+    link: bool = typer.Option(
+        False, "--link", help="Symlink the files instead of copying them under the data dir."
+    ),
+    title: str | None = typer.Option(None, "--title"),
+    description: str = typer.Option("", "--description"),
+    data_dir: Path | None = _DATA_DIR,
+    database_url: str | None = _DATABASE_URL,
+) -> None:
+    """Install a challenge's hidden ground truth (checked and counted once)."""
+    with guarded():
+        from semantic3d.server.challenges import install_challenge
+
+        settings = _settings(data_dir, database_url)
+        row = install_challenge(
+            _database(settings),
+            settings,
+            name,
+            ground_truth,
+            link=link,
+            title=title,
+            description=description,
+        )
+        console.print(
+            f"challenge {row.name}: {row.n_scans} scans, {row.n_points or 0:,} points installed"
+        )
+
+
+@admin_app.command("create-user")
+def create_user(
+    username: str = typer.Argument(...),
+    password: str = typer.Option(
+        ...,
+        "--password",
+        envvar="SEMANTIC3D_NEW_PASSWORD",
+        prompt=True,
+        hide_input=True,
+        confirmation_prompt=True,
+    ),
+    admin: bool = typer.Option(False, "--admin", help="Give the account the admin role."),
+    data_dir: Path | None = _DATA_DIR,
+    database_url: str | None = _DATABASE_URL,
+) -> None:
+    """Create an account (``--admin`` for an administrator)."""
+    with guarded():
+        from semantic3d.server.accounts import create_user as create
+
+        settings = _settings(data_dir, database_url)
+        user = create(_database(settings), username, password, is_admin=admin)
+        console.print(f"account {user.username} created" + (" (admin)" if admin else ""))
+
+
+@admin_app.command("create-token")
+def create_token(
+    username: str = typer.Argument(...),
+    name: str = typer.Option("cli", "--name", help="Label shown on the account page."),
+    data_dir: Path | None = _DATA_DIR,
+    database_url: str | None = _DATABASE_URL,
+) -> None:
+    """Create an API token for an account and print it (shown only this once)."""
+    with guarded():
+        from semantic3d.server.accounts import create_token_for
+
+        settings = _settings(data_dir, database_url)
+        typer.echo(create_token_for(_database(settings), username, name))
+
+
+@admin_app.command("list-challenges")
+def list_challenges(
+    data_dir: Path | None = _DATA_DIR, database_url: str | None = _DATABASE_URL
+) -> None:
+    """List installed challenges."""
+    with guarded():
+        from semantic3d.server.challenges import list_challenges as rows
+
+        settings = _settings(data_dir, database_url)
+        for row in rows(_database(settings)):
+            state = "open" if row.is_open else "closed"
+            typer.echo(f"{row.name}\t{row.kind}\t{row.n_scans} scans\t{state}")
+
+
+def serve_demo(
+    out: Path,
+    *,
+    result: Any,
+    ground_truth: Path,
+    port: int = 8000,
+    host: str = "127.0.0.1",
+    predictions: Path | None = None,
+) -> None:
+    """``semantic3d demo --serve``: a server on ``out/server-data`` showing the demo's result.
+
+    ``result`` is the demo's own :class:`~semantic3d.evaluation.EvaluationResult`; the
+    server scores the predictions (``out/predictions``) itself and the two must agree.
+    """
+    with guarded():
+        import uvicorn
+
+        from semantic3d.evaluation import MethodInfo
+        from semantic3d.server.app import create_app
+        from semantic3d.server.demo import prepare_demo
+
+        settings = _settings(
+            out / "server-data", None, submission_cooldown_h=0, embedded_worker=True
+        )
+        method = result.method or MethodInfo(name="demo baseline")
+        demo = prepare_demo(
+            _database(settings),
+            settings,
+            ground_truth=ground_truth,
+            predictions=predictions or out / "predictions",
+            method=method,
+        )
+        if demo.mean_iou is None or abs(demo.mean_iou - result.scores.mean_iou) > 1e-12:
+            err_console.print(
+                f"[yellow]warning:[/] the server scored mIoU {demo.mean_iou}, "
+                f"the demo {result.scores.mean_iou}"
+            )
+        url = f"http://{host}:{port}"
+        console.rule("5. benchmark server")
+        console.print(f"leaderboard  {url}/challenges/demo")
+        console.print(f"method page  {url}/submissions/{demo.submission_id}")
+        if demo.password is not None:
+            console.print(f"account      demo / {demo.password}")
+            console.print(f"API token    {demo.token}")
+        console.print("[dim]Ctrl-C stops the server[/]")
+        uvicorn.run(create_app(settings), host=host, port=port, log_level="warning")
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``serve``, ``worker``, ``submit`` and ``admin`` to ``app``."""
+    app.command("serve")(serve)
+    app.command("worker")(worker)
+    app.command("submit")(submit)
+    app.add_typer(admin_app, name="admin")
+
+
+def _main() -> None:
+    """``python -m semantic3d.cli.server``: these commands alone (used by the tests)."""
+    import logging
+
+    from semantic3d.cli.console import run_guarded
+
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    app = typer.Typer(add_completion=False, pretty_exceptions_enable=False)
+    register(app)
+    run_guarded(app)
+
+
+if __name__ == "__main__":
+    _main()

@@ -1,0 +1,200 @@
+"""``create_app(settings)``: the FastAPI application of the benchmark server."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from typing import Any
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse, Response
+from fastapi.staticfiles import StaticFiles
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.middleware.sessions import SessionMiddleware
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from semantic3d import __version__
+from semantic3d.core.errors import Semantic3DError, SubmissionError
+from semantic3d.server.challenges import ChallengeCache
+from semantic3d.server.db import create_db_engine, create_session_factory, run_migrations
+from semantic3d.server.errors import ConflictError, ServerError, ThrottledError
+from semantic3d.server.leaderboard import LeaderboardCache
+from semantic3d.server.routers import accounts, admin, challenges, submissions, uploads
+from semantic3d.server.settings import Settings, load_settings
+from semantic3d.server.web import STATIC_DIR, ServerState, build_templates, render
+from semantic3d.server.worker import Worker, WorkerThread
+
+logger = logging.getLogger(__name__)
+
+_SECURITY_HEADERS = [
+    (b"x-content-type-options", b"nosniff"),
+    (b"x-frame-options", b"DENY"),
+    (b"referrer-policy", b"same-origin"),
+    (
+        b"content-security-policy",
+        b"default-src 'self'; img-src 'self' data:; style-src 'self'; script-src 'self'; "
+        b"frame-ancestors 'none'; form-action 'self'",
+    ),
+]
+
+
+class SecurityHeadersMiddleware:
+    """Adds conservative security headers to every response (plain ASGI: no overhead)."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+
+        async def send_with_headers(message: Message) -> None:
+            if message["type"] == "http.response.start":
+                message["headers"] = list(message.get("headers", [])) + _SECURITY_HEADERS
+            await send(message)
+
+        await self.app(scope, receive, send_with_headers)
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    """The server for ``settings`` (default: from ``SEMANTIC3D_*`` environment variables).
+
+    Creates the data dir, upgrades the database schema, and, when
+    ``settings.runs_embedded_worker``, runs an evaluation worker on a background thread
+    for the lifetime of the app.
+    """
+    settings = settings or load_settings()
+    settings.prepare_data_dir()
+    engine = create_db_engine(settings)
+    run_migrations(engine)
+    factory = create_session_factory(engine)
+    state = ServerState(
+        settings=settings,
+        engine=engine,
+        factory=factory,
+        challenges=ChallengeCache(settings),
+        leaderboards=LeaderboardCache(factory, settings.leaderboard_cache_s),
+        templates=build_templates(settings),
+    )
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        if settings.runs_embedded_worker:
+            state.worker = WorkerThread(Worker(settings, factory, cache=state.challenges))
+            state.worker.start()
+            logger.info("embedded worker started")
+        try:
+            yield
+        finally:
+            if state.worker is not None:
+                state.worker.stop()
+                state.worker = None
+            engine.dispose()
+
+    app = FastAPI(
+        title=settings.site_title,
+        version=__version__,
+        lifespan=lifespan,
+        docs_url="/api/docs",
+        redoc_url=None,
+        openapi_url="/api/openapi.json",
+    )
+    app.state.server = state
+    app.add_middleware(
+        SessionMiddleware,
+        secret_key=settings.resolved_secret_key(),
+        session_cookie="semantic3d_session",
+        max_age=settings.session_max_age_s,
+        same_site="lax",
+        https_only=settings.cookie_secure,
+    )
+    app.add_middleware(SecurityHeadersMiddleware)
+    app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
+    for router in (challenges, accounts, uploads, submissions, admin):
+        app.include_router(router.router)
+    _install_error_handlers(app)
+
+    @app.get("/api/health", tags=["health"])
+    def health() -> dict[str, Any]:
+        return {"status": "ok", "version": __version__}
+
+    return app
+
+
+def _wants_json(request: Request) -> bool:
+    return request.url.path.startswith("/api/")
+
+
+def _error_response(
+    request: Request,
+    status: int,
+    message: str,
+    *,
+    problems: list[str] | None = None,
+    headers: dict[str, str] | None = None,
+    extra: dict[str, Any] | None = None,
+) -> Response:
+    if _wants_json(request):
+        body: dict[str, Any] = {"error": message}
+        if problems is not None:
+            body["problems"] = problems
+        body.update(extra or {})
+        return JSONResponse(body, status_code=status, headers=headers)
+    if getattr(request.state, "user", None) is None:
+        request.state.user = None
+    response = render(
+        request,
+        "error.html",
+        {"status": status, "message": message, "problems": problems or []},
+        status_code=status,
+    )
+    for key, value in (headers or {}).items():
+        response.headers[key] = value
+    return response
+
+
+def _install_error_handlers(app: FastAPI) -> None:
+    @app.exception_handler(SubmissionError)
+    async def _submission(request: Request, exc: SubmissionError) -> Response:
+        head = f"{exc.source}: " if exc.source else ""
+        return _error_response(
+            request,
+            422,
+            f"{head}invalid submission, {len(exc.problems)} problem(s)",
+            problems=list(exc.problems),
+        )
+
+    @app.exception_handler(ServerError)
+    async def _server(request: Request, exc: ServerError) -> Response:
+        headers = None
+        extra: dict[str, Any] = {}
+        if isinstance(exc, ThrottledError):
+            headers = {"Retry-After": str(exc.retry_after_s)}
+            extra["retry_after_s"] = exc.retry_after_s
+        if isinstance(exc, ConflictError) and exc.offset is not None:
+            extra["offset"] = exc.offset
+        return _error_response(request, exc.status_code, str(exc), headers=headers, extra=extra)
+
+    @app.exception_handler(Semantic3DError)
+    async def _package(request: Request, exc: Semantic3DError) -> Response:
+        status = 422 if isinstance(exc, ValueError) else 400
+        return _error_response(request, status, str(exc))
+
+    @app.exception_handler(RequestValidationError)
+    async def _validation(request: Request, exc: RequestValidationError) -> Response:
+        problems = []
+        for error in exc.errors():
+            where = ".".join(str(part) for part in error.get("loc", ()))
+            problems.append(f"{where}: {error.get('msg', 'invalid')}")
+        return _error_response(request, 422, "malformed request", problems=problems)
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http(request: Request, exc: StarletteHTTPException) -> Response:
+        message = str(exc.detail)
+        if exc.status_code == 400 and "parsing the body" in message:
+            message = "malformed request body: expected UTF-8 JSON (or form data)"
+        headers = dict(exc.headers) if exc.headers else None
+        return _error_response(request, exc.status_code, message, headers=headers)

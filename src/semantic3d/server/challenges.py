@@ -1,0 +1,176 @@
+"""The server's challenges: installing hidden ground truth, and the evaluation objects for it.
+
+``semantic-8`` and ``reduced-8`` are the benchmark's own challenges (scan list and
+submission names from :func:`semantic3d.evaluation.load_challenge`); any other name is
+a custom challenge built from every ``*.labels`` file in its folder
+(:func:`semantic3d.evaluation.custom_challenge`). Ground truth is copied (or linked)
+into ``DATA_DIR/ground-truth/<name>/`` and is never served over HTTP.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import re
+import shutil
+import threading
+from dataclasses import replace
+from pathlib import Path
+
+from sqlalchemy import select
+from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import Session, sessionmaker
+
+from semantic3d.evaluation import Challenge as EvaluationChallenge
+from semantic3d.evaluation import custom_challenge, load_challenge
+from semantic3d.evaluation.submission import count_ground_truth_lines
+from semantic3d.server.db import write_transaction
+from semantic3d.server.errors import InvalidInputError, NotFoundError
+from semantic3d.server.models import Challenge
+from semantic3d.server.settings import Settings
+
+logger = logging.getLogger(__name__)
+
+BENCHMARK_CHALLENGES = ("semantic-8", "reduced-8")
+CHALLENGE_NAME = re.compile(r"^[a-z0-9][a-z0-9_-]{1,63}$")
+
+
+def ground_truth_folder(settings: Settings, name: str) -> Path:
+    """Where the hidden ground truth of challenge ``name`` lives."""
+    return settings.ground_truth_dir / name
+
+
+def build_challenge(settings: Settings, row: Challenge) -> EvaluationChallenge:
+    """The evaluation's :class:`~semantic3d.evaluation.Challenge` for a stored challenge.
+
+    Point counts recorded at installation fill the scans that lack one (custom
+    challenges), so validating a submission never re-reads the ground truth.
+    """
+    root = ground_truth_folder(settings, row.name)
+    if row.kind in BENCHMARK_CHALLENGES:
+        built = load_challenge(row.kind, ground_truth_root=root)
+    else:
+        built = custom_challenge(root, name=row.name)
+    counts: dict[str, int] = json.loads(row.scan_points_json or "{}")
+    scans = tuple(
+        replace(scan, n_points=counts.get(scan.submission_name)) if scan.n_points is None else scan
+        for scan in built.scans
+    )
+    return replace(built, scans=scans)
+
+
+class ChallengeCache:
+    """Built challenges by name, so each request does not rescan the ground-truth folder."""
+
+    def __init__(self, settings: Settings) -> None:
+        self._settings = settings
+        self._lock = threading.Lock()
+        self._built: dict[tuple[str, int], EvaluationChallenge] = {}
+
+    def get(self, row: Challenge) -> EvaluationChallenge:
+        """The challenge for ``row`` (rebuilt when the row was re-installed)."""
+        key = (row.name, row.id)
+        with self._lock:
+            cached = self._built.get(key)
+        if cached is None:
+            cached = build_challenge(self._settings, row)
+            with self._lock:
+                self._built[key] = cached
+        return cached
+
+
+def install_challenge(
+    factory: sessionmaker[Session],
+    settings: Settings,
+    name: str,
+    ground_truth: Path,
+    *,
+    link: bool = False,
+    title: str | None = None,
+    description: str = "",
+) -> Challenge:
+    """Install a challenge from a folder of ground-truth ``.labels`` files.
+
+    ``name`` ``semantic-8``/``reduced-8`` installs the benchmark's challenge (the folder
+    must hold its test scans' ground truth); any other name a custom challenge. Files are
+    hard-linked or copied under the data dir (``link=True``: symbolic links to the
+    originals, which must then stay in place). The challenge is built once to check the
+    files before it is recorded; on error nothing is left behind.
+    """
+    if not CHALLENGE_NAME.match(name):
+        raise InvalidInputError(
+            f"challenge name {name!r}: expected 2-64 characters a-z, 0-9, '-', '_'"
+        )
+    source = ground_truth.expanduser().resolve()
+    if not source.is_dir():
+        raise InvalidInputError(f"{ground_truth}: expected a folder of .labels files")
+    files = sorted(source.glob("*.labels"))
+    if not files:
+        raise InvalidInputError(f"{ground_truth}: expected .labels files, found none")
+    settings.prepare_data_dir()
+    target = ground_truth_folder(settings, name)
+    if target.exists():
+        raise InvalidInputError(f"challenge {name!r} is already installed ({target})")
+    staging = target.with_name(f".{name}.installing")
+    shutil.rmtree(staging, ignore_errors=True)
+    staging.mkdir(mode=0o700)
+    try:
+        for path in files:
+            _place(path, staging / path.name, link=link)
+        staging.rename(target)
+        row = Challenge(
+            name=name,
+            kind=name if name in BENCHMARK_CHALLENGES else "custom",
+            title=title or name,
+            description=description,
+        )
+        row.scan_points_json = "{}"
+        built = build_challenge(settings, row)
+        # Count (and check) every ground-truth file once, now, instead of per submission.
+        counts = {scan.submission_name: count_ground_truth_lines(scan) for scan in built.scans}
+        row.scan_points_json = json.dumps(counts, sort_keys=True)
+        row.protocol_version = str(built.protocol_version)
+        row.n_scans = len(built.scans)
+        row.n_points = sum(counts.values())
+        with write_transaction(factory) as session:
+            session.add(row)
+    except IntegrityError:
+        shutil.rmtree(target, ignore_errors=True)
+        raise InvalidInputError(f"challenge {name!r} already exists") from None
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        shutil.rmtree(target, ignore_errors=True)
+        raise
+    logger.info("installed challenge %s: %d scans", name, row.n_scans)
+    return row
+
+
+def _place(source: Path, target: Path, *, link: bool) -> None:
+    if link:
+        target.symlink_to(source)
+        return
+    try:
+        os.link(source, target)
+    except OSError:
+        shutil.copyfile(source, target)
+
+
+def list_challenges(factory: sessionmaker[Session]) -> list[Challenge]:
+    """Every installed challenge, by name."""
+    with factory() as session:
+        return list(session.scalars(select(Challenge).order_by(Challenge.name)))
+
+
+def get_challenge(session: Session, name: str) -> Challenge:
+    """The challenge called ``name`` or :class:`NotFoundError`."""
+    row = session.scalars(select(Challenge).where(Challenge.name == name)).one_or_none()
+    if row is None:
+        raise NotFoundError(f"no challenge named {name!r}")
+    return row
+
+
+def set_challenge_open(factory: sessionmaker[Session], name: str, *, is_open: bool) -> None:
+    """Open or close a challenge to new submissions (its leaderboard stays visible)."""
+    with write_transaction(factory) as session:
+        get_challenge(session, name).is_open = is_open

@@ -1,0 +1,133 @@
+"""Engine, sessions, write locks and migrations.
+
+SQLite (the embedded default) runs in WAL mode so readers never wait for the writer.
+Its driver's implicit transactions are replaced by explicit ``BEGIN`` statements so
+that a *locking* transaction can start with ``BEGIN IMMEDIATE``: the write lock is
+taken before the first read, which is what makes check-then-insert quota rules
+race-free. On PostgreSQL the same functions take a row lock (``SELECT ... FOR UPDATE``).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+from sqlalchemy import Engine, create_engine, event, select, text
+from sqlalchemy.engine import Connection
+from sqlalchemy.orm import Session, sessionmaker
+from sqlalchemy.pool import ConnectionPoolEntry
+
+from semantic3d.server.models import User
+from semantic3d.server.settings import Settings
+
+logger = logging.getLogger(__name__)
+
+MIGRATIONS_DIR = Path(__file__).parent / "migrations"
+_IMMEDIATE = "semantic3d_immediate"
+# Alembic keeps its migration context in module globals: one migration per process at a time.
+_MIGRATION_LOCK = threading.Lock()
+
+
+def create_db_engine(settings: Settings) -> Engine:
+    """An engine for ``settings``' database; SQLite gets WAL mode and explicit BEGINs."""
+    url = settings.resolved_database_url
+    if url.startswith("sqlite"):
+        settings.prepare_data_dir()
+        engine = create_engine(
+            url,
+            connect_args={"check_same_thread": False, "timeout": 60},
+            pool_size=20,
+            max_overflow=20,
+        )
+        _configure_sqlite(engine)
+    else:
+        engine = create_engine(url, pool_size=10, max_overflow=20, pool_pre_ping=True)
+    return engine
+
+
+def _configure_sqlite(engine: Engine) -> None:
+    @event.listens_for(engine, "connect")
+    def _on_connect(dbapi_connection: Any, record: ConnectionPoolEntry) -> None:
+        # Take transaction control away from the driver: we emit BEGIN ourselves.
+        dbapi_connection.isolation_level = None
+        cursor = dbapi_connection.cursor()
+        cursor.execute("PRAGMA journal_mode=WAL")
+        cursor.execute("PRAGMA synchronous=FULL")
+        cursor.execute("PRAGMA foreign_keys=ON")
+        cursor.execute("PRAGMA busy_timeout=60000")
+        cursor.close()
+
+    @event.listens_for(engine, "begin")
+    def _on_begin(connection: Connection) -> None:
+        immediate = connection.get_execution_options().get(_IMMEDIATE, False)
+        connection.exec_driver_sql("BEGIN IMMEDIATE" if immediate else "BEGIN")
+
+
+def create_session_factory(engine: Engine) -> sessionmaker[Session]:
+    """Sessions that keep loaded attributes after commit (pages render after the commit)."""
+    return sessionmaker(engine, expire_on_commit=False)
+
+
+@contextmanager
+def write_transaction(factory: sessionmaker[Session]) -> Iterator[Session]:
+    """A session whose transaction holds the database write lock from its first statement.
+
+    On SQLite this is ``BEGIN IMMEDIATE`` (one writer at a time, readers unaffected);
+    elsewhere an ordinary transaction in which callers take row locks with
+    :func:`lock_user`. Commits on success, rolls back on error.
+    """
+    with factory() as session:
+        session.connection(execution_options={_IMMEDIATE: True})
+        try:
+            yield session
+            session.commit()
+        except BaseException:
+            session.rollback()
+            raise
+
+
+def lock_user(session: Session, user_id: int) -> User:
+    """Lock the account row for the rest of the transaction and bump its quota epoch.
+
+    Two transactions that both call this for one account run one after the other; the
+    second sees everything the first committed (PostgreSQL re-reads the row after the
+    lock; SQLite's ``BEGIN IMMEDIATE`` already serialised them).
+    """
+    user = session.execute(
+        select(User)
+        .where(User.id == user_id)
+        .with_for_update()
+        .execution_options(populate_existing=True)
+    ).scalar_one()
+    user.quota_epoch = user.quota_epoch + 1
+    session.flush()
+    return user
+
+
+def run_migrations(engine: Engine) -> None:
+    """Upgrade the schema to the newest Alembic revision.
+
+    Safe to call from several processes at once: SQLite serialises them with
+    ``BEGIN IMMEDIATE``, PostgreSQL with an advisory lock (see ``migrations/env.py``).
+    """
+    from alembic import command
+    from alembic.config import Config
+
+    config = Config()
+    config.set_main_option("script_location", str(MIGRATIONS_DIR))
+    with _MIGRATION_LOCK, engine.connect() as connection:
+        if engine.dialect.name == "sqlite":
+            connection = connection.execution_options(**{_IMMEDIATE: True})
+        config.attributes["connection"] = connection
+        command.upgrade(config, "head")
+    logger.info("database schema at the newest revision")
+
+
+def ping(engine: Engine) -> None:
+    """Raise if the database cannot answer a trivial query."""
+    with engine.connect() as connection:
+        connection.execute(text("SELECT 1"))

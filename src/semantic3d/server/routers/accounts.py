@@ -1,0 +1,148 @@
+"""Accounts: registration, login, logout, the account page with API tokens, ``/api/me``."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from fastapi import APIRouter, Form, Request
+from fastapi.responses import RedirectResponse, Response
+
+from semantic3d.server.accounts import (
+    authenticate,
+    create_token,
+    create_user,
+    list_tokens,
+    revoke_token,
+)
+from semantic3d.server.errors import AuthenticationError, ForbiddenError, InvalidInputError
+from semantic3d.server.web import (
+    api_user,
+    check_csrf,
+    client_address,
+    log_in,
+    render,
+    session_user,
+    state_of,
+)
+
+router = APIRouter()
+
+
+def _local_path(target: str | None) -> str:
+    """Only same-site paths may be redirect targets (no open redirects)."""
+    if target and target.startswith("/") and not target.startswith("//") and "\\" not in target:
+        return target
+    return "/"
+
+
+@router.get("/api/me", tags=["accounts"])
+def api_me(request: Request) -> dict[str, Any]:
+    """Who the token (or session) belongs to."""
+    user = api_user(request)
+    return {"username": user.username, "is_admin": user.is_admin}
+
+
+@router.get("/register", include_in_schema=False)
+def register_page(request: Request) -> Response:
+    request.state.user = session_user(request)
+    return render(request, "register.html", {"open": state_of(request).settings.registration_open})
+
+
+@router.post("/register", include_in_schema=False)
+def register(
+    request: Request,
+    username: str = Form(...),
+    password: str = Form(...),
+    password_again: str = Form(...),
+    csrf_token: str = Form(""),
+) -> Response:
+    request.state.user = None
+    check_csrf(request, csrf_token)
+    state = state_of(request)
+    if not state.settings.registration_open:
+        raise ForbiddenError("registration is closed on this server; ask its administrator")
+    try:
+        if password != password_again:
+            raise InvalidInputError("the two passwords differ")
+        user = create_user(state.factory, username, password)
+    except InvalidInputError as exc:
+        return render(
+            request,
+            "register.html",
+            {"open": True, "error": str(exc), "username": username},
+            status_code=400,
+        )
+    log_in(request, user)
+    return RedirectResponse("/account", status_code=303)
+
+
+@router.get("/login", include_in_schema=False)
+def login_page(request: Request, next: str = "/") -> Response:
+    request.state.user = session_user(request)
+    return render(request, "login.html", {"next": _local_path(next)})
+
+
+@router.post("/login", include_in_schema=False)
+def login(
+    request: Request,
+    username: str = Form(...),
+    password: str = Form(...),
+    next: str = Form("/"),
+    csrf_token: str = Form(""),
+) -> Response:
+    request.state.user = None
+    check_csrf(request, csrf_token)
+    state = state_of(request)
+    try:
+        user = authenticate(
+            state.factory, state.settings, username, password, address=client_address(request)
+        )
+    except AuthenticationError as exc:
+        return render(
+            request,
+            "login.html",
+            {"error": str(exc), "username": username, "next": _local_path(next)},
+            status_code=401,
+        )
+    log_in(request, user)
+    return RedirectResponse(_local_path(next), status_code=303)
+
+
+@router.post("/logout", include_in_schema=False)
+def logout(request: Request, csrf_token: str = Form("")) -> Response:
+    check_csrf(request, csrf_token)
+    request.session.clear()
+    return RedirectResponse("/", status_code=303)
+
+
+@router.get("/account", include_in_schema=False)
+def account_page(request: Request) -> Response:
+    user = request.state.user = session_user(request)
+    if user is None:
+        return RedirectResponse("/login?next=/account", status_code=303)
+    tokens = list_tokens(state_of(request).factory, user.id)
+    return render(request, "account.html", {"tokens": tokens})
+
+
+@router.post("/account/tokens", include_in_schema=False)
+def new_token(request: Request, name: str = Form("cli"), csrf_token: str = Form("")) -> Response:
+    user = request.state.user = session_user(request)
+    if user is None:
+        return RedirectResponse("/login?next=/account", status_code=303)
+    check_csrf(request, csrf_token)
+    factory = state_of(request).factory
+    _, secret = create_token(factory, user.id, name)
+    # Rendered in this response only: the secret is never stored or shown again.
+    return render(
+        request, "account.html", {"tokens": list_tokens(factory, user.id), "new_token": secret}
+    )
+
+
+@router.post("/account/tokens/{token_id}/revoke", include_in_schema=False)
+def revoke(request: Request, token_id: int, csrf_token: str = Form("")) -> Response:
+    user = request.state.user = session_user(request)
+    if user is None:
+        return RedirectResponse("/login?next=/account", status_code=303)
+    check_csrf(request, csrf_token)
+    revoke_token(state_of(request).factory, user.id, token_id)
+    return RedirectResponse("/account", status_code=303)

@@ -1,0 +1,308 @@
+"""Accepting submissions: validate the finished upload, check the quota, queue the evaluation.
+
+Quota rules (checked in one transaction holding the account's row lock, so two
+simultaneous requests cannot both pass): one submission in flight per account (also a
+partial unique index), and one submission per challenge every ``submission_cooldown_h``
+hours, failed ones included. A submission that fails validation is answered with every
+problem at once and leaves nothing behind: no upload, no file, no queued job.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import uuid
+from datetime import datetime, timedelta
+from typing import Any, BinaryIO
+
+from sqlalchemy import func, select
+from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import Session, sessionmaker
+
+from semantic3d.core.errors import SubmissionError
+from semantic3d.evaluation import EvaluationResult, MethodInfo, validate_submission
+from semantic3d.server.challenges import ChallengeCache
+from semantic3d.server.db import lock_user, write_transaction
+from semantic3d.server.errors import (
+    InvalidInputError,
+    NotFoundError,
+    ThrottledError,
+    UploadIncompleteError,
+)
+from semantic3d.server.models import (
+    JOB_DONE,
+    Job,
+    Submission,
+    UploadSession,
+    utc_now,
+)
+from semantic3d.server.settings import Settings
+from semantic3d.server.uploads import (
+    delete_upload,
+    locked_part,
+    owned_upload,
+    part_path,
+    upload_sha256,
+)
+
+logger = logging.getLogger(__name__)
+
+
+def validate_method(method: MethodInfo) -> MethodInfo:
+    """Check a method card's fields; links must be http(s) (they are shown as links)."""
+    problems = []
+    if not method.name.strip() or len(method.name) > 200:
+        problems.append(f"method name: expected 1-200 characters, found {len(method.name)}")
+    for field, value in (("paper_url", method.paper_url), ("code_url", method.code_url)):
+        if value and (not value.startswith(("http://", "https://")) or len(value) > 500):
+            problems.append(f"{field}: expected an http(s) address, found {value[:60]!r}")
+    if method.runtime_s is not None and not (
+        math.isfinite(method.runtime_s) and method.runtime_s >= 0
+    ):
+        problems.append(f"runtime_s: expected seconds >= 0, found {method.runtime_s}")
+    if method.hardware is not None and len(method.hardware) > 200:
+        problems.append("hardware: expected at most 200 characters")
+    if len(method.description) > 20_000:
+        problems.append("description: expected at most 20000 characters")
+    if problems:
+        raise InvalidInputError("; ".join(problems))
+    return MethodInfo(
+        name=method.name.strip(),
+        runtime_s=method.runtime_s,
+        hardware=method.hardware.strip() if method.hardware else None,
+        description=method.description.strip(),
+        paper_url=method.paper_url.strip(),
+        code_url=method.code_url.strip(),
+    )
+
+
+def check_quota(
+    session: Session, settings: Settings, *, user_id: int, challenge_id: int, now: datetime
+) -> None:
+    """Raise :class:`ThrottledError` if the account may not submit to the challenge now."""
+    in_flight = session.scalar(
+        select(Submission.id).where(Submission.user_id == user_id, Submission.in_flight).limit(1)
+    )
+    if in_flight is not None:
+        raise ThrottledError(
+            f"submission #{in_flight} is still being evaluated: one submission in flight "
+            "per account; submit again when it has finished",
+            retry_after_s=60,
+        )
+    if settings.submission_cooldown_h <= 0:
+        return
+    last = session.scalar(
+        select(func.max(Submission.created_at)).where(
+            Submission.user_id == user_id, Submission.challenge_id == challenge_id
+        )
+    )
+    if last is None:
+        return
+    next_allowed = last + timedelta(hours=settings.submission_cooldown_h)
+    if next_allowed > now:
+        wait_s = int((next_allowed - now).total_seconds()) + 1
+        raise ThrottledError(
+            f"one submission per challenge every {settings.submission_cooldown_h:g} h "
+            f"(failed ones count): your next one is allowed at "
+            f"{next_allowed:%Y-%m-%d %H:%M} UTC",
+            retry_after_s=wait_s,
+        )
+
+
+def finalize_upload(
+    factory: sessionmaker[Session],
+    settings: Settings,
+    cache: ChallengeCache,
+    *,
+    user_id: int,
+    upload_id: str,
+    method: MethodInfo,
+) -> Submission:
+    """Turn a complete upload into a queued submission (see the module docstring)."""
+    method = validate_method(method)
+    with factory() as session:
+        upload = owned_upload(session, upload_id, user_id)
+        challenge_row = upload.challenge
+        check_quota(
+            session, settings, user_id=user_id, challenge_id=challenge_row.id, now=utc_now()
+        )
+    with locked_part(settings, upload_id) as handle:
+        return _accept(factory, settings, cache, handle=handle, upload=upload, method=method)
+
+
+def _accept(
+    factory: sessionmaker[Session],
+    settings: Settings,
+    cache: ChallengeCache,
+    *,
+    handle: BinaryIO,
+    upload: UploadSession,
+    method: MethodInfo,
+) -> Submission:
+    """Check, store and queue a locked upload (``finalize_upload`` holds the part file)."""
+    challenge_row, user_id = upload.challenge, upload.user_id
+    received = os.fstat(handle.fileno()).st_size
+    if received < upload.size_bytes:
+        raise UploadIncompleteError(
+            f"upload {upload.id}: incomplete, {received} of {upload.size_bytes} bytes "
+            f"received; resume from offset {received}"
+        )
+    digest = upload_sha256(settings, upload.id, upload.size_bytes)
+    if upload.sha256 and digest != upload.sha256:
+        delete_upload(factory, settings, upload.id)
+        raise InvalidInputError(
+            f"{upload.filename}: corrupted in transit: expected sha256 {upload.sha256}, "
+            f"found {digest}; upload it again"
+        )
+    path = part_path(settings, upload.id)
+    try:
+        validate_submission(
+            path, challenge=cache.get(challenge_row), limits=settings.submission_limits()
+        )
+    except SubmissionError as exc:
+        delete_upload(factory, settings, upload.id)
+        problems = [problem.replace(str(path), upload.filename) for problem in exc.problems]
+        raise SubmissionError(problems, source=upload.filename) from None
+
+    stored_name = f"{uuid.uuid4().hex}.zip"
+    target = settings.submissions_dir / stored_name
+    os.fsync(handle.fileno())
+    path.rename(target)
+    try:
+        with write_transaction(factory) as session:
+            now = utc_now()
+            lock_user(session, user_id)
+            check_quota(session, settings, user_id=user_id, challenge_id=challenge_row.id, now=now)
+            submission = Submission(
+                user_id=user_id,
+                challenge_id=challenge_row.id,
+                created_at=now,
+                in_flight=True,
+                method_name=method.name,
+                description=method.description,
+                paper_url=method.paper_url,
+                code_url=method.code_url,
+                runtime_s=method.runtime_s,
+                hardware=method.hardware,
+                filename=upload.filename,
+                stored_name=stored_name,
+                size_bytes=upload.size_bytes,
+                sha256=digest,
+            )
+            session.add(submission)
+            session.flush()
+            session.add(Job(submission_id=submission.id, created_at=now))
+            row = session.get(UploadSession, upload.id)
+            if row is not None:
+                session.delete(row)
+    except IntegrityError:
+        target.rename(path)
+        raise ThrottledError(
+            "another submission of yours was accepted a moment ago: one submission in "
+            "flight per account",
+            retry_after_s=60,
+        ) from None
+    except BaseException:
+        target.rename(path)
+        raise
+    logger.info(
+        "submission #%d queued: %s, %d bytes, sha256 %s",
+        submission.id,
+        challenge_row.name,
+        upload.size_bytes,
+        digest[:12],
+    )
+    return submission
+
+
+def set_published(
+    factory: sessionmaker[Session], *, user_id: int, submission_id: int, published: bool
+) -> Submission:
+    """Publish (or withdraw) an evaluated submission of the caller's on its leaderboard."""
+    with write_transaction(factory) as session:
+        submission = session.get(Submission, submission_id)
+        if submission is None or submission.user_id != user_id:
+            raise NotFoundError(f"submission #{submission_id}: not one of yours")
+        if published and (submission.job.status != JOB_DONE or submission.mean_iou is None):
+            raise InvalidInputError(
+                f"submission #{submission_id}: only evaluated submissions can be published "
+                f"(status: {submission.job.status})"
+            )
+        submission.published = published
+        submission.published_at = utc_now() if published else None
+    return submission
+
+
+def visible_submission(
+    session: Session, submission_id: int, *, viewer_id: int | None, viewer_is_admin: bool = False
+) -> Submission:
+    """A submission the viewer may see: published, their own, or any for an admin."""
+    submission = session.get(Submission, submission_id)
+    if submission is None or not (
+        submission.published or viewer_is_admin or submission.user_id == viewer_id
+    ):
+        raise NotFoundError(f"no submission #{submission_id}")
+    return submission
+
+
+def user_submissions(factory: sessionmaker[Session], user_id: int) -> list[Submission]:
+    """The account's submissions, newest first, with job and challenge loaded."""
+    with factory() as session:
+        rows = list(
+            session.scalars(
+                select(Submission)
+                .where(Submission.user_id == user_id)
+                .order_by(Submission.id.desc())
+            )
+        )
+        for row in rows:
+            _ = (row.job, row.challenge)
+        return rows
+
+
+def result_of(submission: Submission) -> EvaluationResult | None:
+    """The stored evaluation result (``None`` until evaluated)."""
+    if submission.result_json is None:
+        return None
+    return EvaluationResult.from_dict(json.loads(submission.result_json))
+
+
+def submission_dict(submission: Submission, *, owner: bool) -> dict[str, Any]:
+    """JSON view of a submission; errors only for its owner, per-scan scores never."""
+    job = submission.job
+    data: dict[str, Any] = {
+        "id": submission.id,
+        "challenge": submission.challenge.name,
+        "status": job.status,
+        "progress": {"done": job.progress_done, "total": job.progress_total},
+        "created_at": submission.created_at.isoformat(),
+        "finished_at": submission.finished_at.isoformat() if submission.finished_at else None,
+        "published": submission.published,
+        "method": {
+            "name": submission.method_name,
+            "description": submission.description,
+            "paper_url": submission.paper_url,
+            "code_url": submission.code_url,
+            "runtime_s": submission.runtime_s,
+            "hardware": submission.hardware,
+        },
+        "scores": None,
+    }
+    if owner:
+        data["filename"] = submission.filename
+        data["size_bytes"] = submission.size_bytes
+        data["sha256"] = submission.sha256
+        data["error"] = submission.error
+        data["attempts"] = job.attempts
+    if submission.mean_iou is not None:
+        result = result_of(submission)
+        data["scores"] = {
+            "mean_iou": submission.mean_iou,
+            "overall_accuracy": submission.overall_accuracy,
+            "iou": json.loads(submission.iou_json or "[]"),
+            "n_points": submission.n_points,
+            "confusion": result.confusion.tolist() if result is not None else None,
+        }
+    return data

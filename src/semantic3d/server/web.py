@@ -1,0 +1,170 @@
+"""Shared request plumbing for the routers: app state, who is asking, CSRF, templates.
+
+Two ways to authenticate: the session cookie of the web pages (signed by Starlette's
+``SessionMiddleware``) and ``Authorization: Bearer s3d_…`` API tokens for the CLI. A
+state-changing request authenticated by cookie must carry the session's CSRF token
+(form field ``csrf_token`` or header ``X-CSRF-Token``); token requests need none, as
+browsers never attach them on their own.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import secrets
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from fastapi import Request
+from fastapi.templating import Jinja2Templates
+from sqlalchemy import Engine
+from sqlalchemy.orm import Session, sessionmaker
+
+from semantic3d.core.classes import CLASSES
+from semantic3d.server.accounts import get_user, user_for_token
+from semantic3d.server.challenges import ChallengeCache
+from semantic3d.server.errors import AuthenticationError, ForbiddenError
+from semantic3d.server.leaderboard import LeaderboardCache
+from semantic3d.server.models import User
+from semantic3d.server.settings import Settings
+from semantic3d.server.worker import WorkerThread
+
+TEMPLATES_DIR = Path(__file__).parent / "templates"
+STATIC_DIR = Path(__file__).parent / "static"
+_SAFE_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
+
+
+@dataclass
+class ServerState:
+    """Everything the routers share, kept on ``app.state.server``."""
+
+    settings: Settings
+    engine: Engine
+    factory: sessionmaker[Session]
+    challenges: ChallengeCache
+    leaderboards: LeaderboardCache
+    templates: Jinja2Templates
+    worker: WorkerThread | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+def state_of(request: Request) -> ServerState:
+    """The :class:`ServerState` of the app serving ``request``."""
+    state: ServerState = request.app.state.server
+    return state
+
+
+def client_address(request: Request) -> str:
+    """The peer address (behind a proxy, run uvicorn with ``--forwarded-allow-ips``)."""
+    return request.client.host if request.client else "unknown"
+
+
+def csrf_token(request: Request) -> str:
+    """The session's CSRF token (created on first use)."""
+    token = request.session.get("csrf")
+    if not token:
+        token = secrets.token_urlsafe(32)
+        request.session["csrf"] = token
+    return str(token)
+
+
+def check_csrf(request: Request, submitted: str | None) -> None:
+    """Raise :class:`ForbiddenError` unless ``submitted`` is the session's CSRF token."""
+    expected = request.session.get("csrf")
+    if not expected or not submitted or not hmac.compare_digest(str(expected), submitted):
+        raise ForbiddenError(
+            "missing or wrong CSRF token: reload the page and try again "
+            "(API clients: send Authorization: Bearer <token>)"
+        )
+
+
+def bearer_token(request: Request) -> str | None:
+    """The API token of an ``Authorization: Bearer`` header, if any."""
+    header = request.headers.get("authorization", "")
+    scheme, _, value = header.partition(" ")
+    return value.strip() if scheme.lower() == "bearer" and value.strip() else None
+
+
+def session_user(request: Request) -> User | None:
+    """The account logged in through the session cookie, if any."""
+    user_id = request.session.get("user_id")
+    if not isinstance(user_id, int):
+        return None
+    user = get_user(state_of(request).factory, user_id)
+    if user is None or request.session.get("epoch") != _epoch(user):
+        request.session.clear()
+        return None
+    return user
+
+
+def api_user(request: Request) -> User:
+    """The caller of an API route: a token, or the session (plus CSRF header if unsafe)."""
+    token = bearer_token(request)
+    if token is not None:
+        return user_for_token(state_of(request).factory, token)
+    user = session_user(request)
+    if user is None:
+        raise AuthenticationError(
+            "authentication required: send Authorization: Bearer <token> "
+            "(create one on your account page) or log in"
+        )
+    if request.method not in _SAFE_METHODS:
+        check_csrf(request, request.headers.get("x-csrf-token"))
+    return user
+
+
+def optional_user(request: Request) -> User | None:
+    """The caller if authenticated by token or session, else ``None`` (public pages)."""
+    token = bearer_token(request)
+    if token is not None:
+        return user_for_token(state_of(request).factory, token)
+    return session_user(request)
+
+
+def _epoch(user: User) -> str:
+    """Changes when the password does (ending every session) without revealing the hash."""
+    return hashlib.sha256(user.password_hash.encode()).hexdigest()[:16]
+
+
+def log_in(request: Request, user: User) -> None:
+    """Start a fresh session for ``user`` (new CSRF token: no session fixation)."""
+    request.session.clear()
+    request.session["user_id"] = user.id
+    request.session["epoch"] = _epoch(user)
+    csrf_token(request)
+
+
+def build_templates(settings: Settings) -> Jinja2Templates:
+    """The Jinja2 environment of the pages (autoescaping on)."""
+    templates = Jinja2Templates(directory=str(TEMPLATES_DIR))
+    env = templates.env
+    env.globals["site_title"] = settings.site_title
+    env.globals["classes"] = CLASSES
+    env.globals["csrf_token"] = csrf_token
+    env.filters["pct"] = lambda value: "–" if value is None else f"{100 * value:.1f}"
+    env.filters["when"] = lambda value: "" if value is None else f"{value:%Y-%m-%d %H:%M} UTC"
+    env.filters["day"] = lambda value: "" if value is None else f"{value:%Y-%m-%d}"
+    env.filters["seconds"] = _format_seconds
+    return templates
+
+
+def _format_seconds(value: float | None) -> str:
+    if value is None:
+        return "–"
+    if value < 120:
+        return f"{value:g} s"
+    if value < 7200:
+        return f"{value / 60:.0f} min"
+    return f"{value / 3600:.1f} h"
+
+
+def render(
+    request: Request, name: str, context: dict[str, Any] | None = None, *, status_code: int = 200
+) -> Any:
+    """Render template ``name`` with the current user in the context."""
+    values = {"user": getattr(request.state, "user", None)}
+    values.update(context or {})
+    return state_of(request).templates.TemplateResponse(
+        request, name, values, status_code=status_code
+    )

@@ -1,0 +1,141 @@
+"""The server's commands through typer's CliRunner: admin group and a one-shot worker."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import typer
+from typer.testing import CliRunner
+
+from semantic3d.cli import server as server_commands
+
+from .conftest import PASSWORD
+
+
+@pytest.fixture
+def cli() -> typer.Typer:
+    app = typer.Typer()
+    server_commands.register(app)
+    return app
+
+
+def run(cli: typer.Typer, *args: str, input: str | None = None):
+    return CliRunner().invoke(cli, list(args), input=input, catch_exceptions=False)
+
+
+def test_admin_commands_set_up_a_server(
+    cli: typer.Typer, tmp_path: Path, ground_truth_dir: Path
+) -> None:
+    data = str(tmp_path / "data")
+    added = run(
+        cli,
+        "admin",
+        "add-challenge",
+        "toy",
+        "--ground-truth",
+        str(ground_truth_dir),
+        "--data-dir",
+        data,
+    )
+    assert added.exit_code == 0, added.output
+    assert "2 scans, 5,000 points" in added.output
+    assert (tmp_path / "data" / "ground-truth" / "toy" / "scan_a.labels").is_file()
+    listed = run(cli, "admin", "list-challenges", "--data-dir", data)
+    assert "toy\tcustom\t2 scans\topen" in listed.output
+
+    user = run(
+        cli,
+        "admin",
+        "create-user",
+        "root",
+        "--admin",
+        "--data-dir",
+        data,
+        input=f"{PASSWORD}\n{PASSWORD}\n",
+    )
+    assert user.exit_code == 0, user.output
+    assert "account root created (admin)" in user.output
+    token = run(cli, "admin", "create-token", "root", "--data-dir", data)
+    assert token.exit_code == 0 and token.output.strip().startswith("s3d_")
+    assert run(cli, "worker", "--once", "--data-dir", data).output.strip() == "queue empty"
+
+
+def test_admin_errors_are_one_red_line(
+    cli: typer.Typer, tmp_path: Path, ground_truth_dir: Path
+) -> None:
+    data = str(tmp_path / "data")
+    run(
+        cli,
+        "admin",
+        "add-challenge",
+        "toy",
+        "--ground-truth",
+        str(ground_truth_dir),
+        "--data-dir",
+        data,
+    )
+    again = run(
+        cli,
+        "admin",
+        "add-challenge",
+        "toy",
+        "--ground-truth",
+        str(ground_truth_dir),
+        "--data-dir",
+        data,
+    )
+    assert again.exit_code == 2
+    assert "already installed" in again.output
+    bad = run(
+        cli,
+        "admin",
+        "add-challenge",
+        "Bad Name",
+        "--ground-truth",
+        str(ground_truth_dir),
+        "--data-dir",
+        data,
+    )
+    assert bad.exit_code == 2 and "challenge name 'Bad Name'" in bad.output
+    nobody = run(cli, "admin", "create-token", "ghost", "--data-dir", data)
+    assert nobody.exit_code == 2 and "no account named 'ghost'" in nobody.output
+
+
+def test_a_broken_ground_truth_folder_is_refused_and_leaves_nothing(
+    cli: typer.Typer, tmp_path: Path
+) -> None:
+    folder = tmp_path / "gt"
+    folder.mkdir()
+    (folder / "scan.labels").write_text("1\n2\nbanana\n")
+    data = tmp_path / "data"
+    result = run(
+        cli,
+        "admin",
+        "add-challenge",
+        "broken",
+        "--ground-truth",
+        str(folder),
+        "--data-dir",
+        str(data),
+    )
+    assert result.exit_code == 2 and "line 3" in result.output
+    assert not (data / "ground-truth" / "broken").exists()
+    assert "broken" not in run(cli, "admin", "list-challenges", "--data-dir", str(data)).output
+
+
+def test_benchmark_challenge_needs_its_scans(
+    cli: typer.Typer, tmp_path: Path, ground_truth_dir: Path
+) -> None:
+    result = run(
+        cli,
+        "admin",
+        "add-challenge",
+        "reduced-8",
+        "--ground-truth",
+        str(ground_truth_dir),
+        "--data-dir",
+        str(tmp_path / "data"),
+    )
+    assert result.exit_code == 2
+    assert "expected ground truth of every reduced-8 scan" in result.output
