@@ -1,0 +1,48 @@
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from semantic3d.cli.app import app
+
+runner = CliRunner()
+
+
+@pytest.mark.slow
+def test_demo_runs_end_to_end_without_real_data(tmp_path: Path) -> None:
+    out = tmp_path / "demo"
+    result = runner.invoke(
+        app,
+        ["demo", "--out", str(out), "--data", str(tmp_path / "none"), "--points", "80000"],
+    )
+    assert result.exit_code == 0, result.output
+    assert "no real samples" in result.output
+    report = json.loads((out / "result.json").read_text())
+    assert report["challenge"] == "demo"
+    # The baseline must beat a constant "man-made terrain" answer by a wide margin.
+    assert report["scores"]["mean_iou"] > 0.4
+    html = (out / "report.html").read_text()
+    assert "<img" in html and "covariance baseline" in html
+    assert sorted(p.name for p in (out / "submission").iterdir()) == ["square_station2.labels"]
+
+
+@pytest.mark.slow
+def test_demo_converts_the_real_samples(tmp_path: Path, shared_data: Path) -> None:
+    data = tmp_path / "data" / "oakland"
+    data.mkdir(parents=True)
+    source = shared_data / "oakland" / "oakland_part2_ac"
+    for suffix in (".txt", ".labels"):
+        (data / f"oakland_part2_ac{suffix}").symlink_to(source.with_suffix(suffix))
+    out = tmp_path / "demo"
+    result = runner.invoke(
+        app,
+        ["demo", "--out", str(out), "--data", str(tmp_path / "data"), "--points", "60000"],
+    )
+    assert result.exit_code == 0, result.output
+    samples = out / "samples"
+    assert (samples / "oakland_part2_ac.las").stat().st_size > 0
+    assert (samples / "oakland_part2_ac.ply").stat().st_size > 0
+    assert (samples / "oakland_part2_ac.cache" / "meta.json").is_file()
