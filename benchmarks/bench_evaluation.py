@@ -1,6 +1,7 @@
 """Throughput and peak memory of evaluation, in one run, against what a user would pick instead.
 
     python benchmarks/bench_evaluation.py [--labels 100000000] [--agreement-points 2000000]
+                                          [--only evaluation|update|agreement]
 
 1. End-to-end evaluation (parse ground truth + prediction, accumulate the matrix) of one
    scan of ``--labels`` single-digit lines, generated once under benchmarks/out/:
@@ -9,8 +10,12 @@
    evaluator's approach; on a 2 M-line prefix, it is too slow for more).
 2. ``ConfusionMatrix.update`` against ``sklearn.metrics.confusion_matrix`` and
    ``np.bincount`` on in-memory uint8 arrays.
-3. The label-agreement check on two overlapping synthetic scans, in memory and from ASCII
-   files, against one untiled ``cKDTree`` per direction.
+3. The label-agreement check on two overlapping scans of the simulated ``street`` scene
+   (two stations, ``--agreement-points`` each, as ``semantic3d simulate`` writes them):
+   from the ASCII files (what ``semantic3d agreement`` does, parsing included) and in
+   memory, against one untiled ``cKDTree`` per direction (the textbook approach); then
+   the same on volumetric noise (points scattered uniformly through walls and tree
+   crowns: no structure, the worst case for the occupancy filter).
 
 Each contender runs in its own process (benchmarks/_harness.py), so peak RSS is its own.
 Targets: evaluation >= 150 M labels/s, update >= 10x sklearn, agreement >= 1 M points/s.
@@ -98,6 +103,20 @@ def _overlapping_scans(n_points: int) -> tuple[PointCloud, PointCloud]:
         return PointCloud.from_arrays(xyz, labels=labels)
 
     return scan(1, 0.0), scan(2, 30.0)
+
+
+def make_simulated_scans(n_points: int) -> tuple[Path, Path, Path, Path]:
+    """Two overlapping stations of the simulated street, written once."""
+    from semantic3d.datasets.simulator import simulate
+
+    root = OUT / f"agreement_street_{n_points}"
+    names = ("street_station1.txt", "street_station1.labels")
+    names += ("street_station2.txt", "street_station2.labels")
+    files = tuple(root / name for name in names)
+    if not all(f.exists() for f in files):
+        simulate("street", out=root, n_points=n_points, stations=2, seed=1)
+    a_txt, a_labels, b_txt, b_labels = files
+    return a_txt, a_labels, b_txt, b_labels
 
 
 def make_agreement_files(n_points: int) -> tuple[Path, Path, Path, Path]:
@@ -246,21 +265,25 @@ def _update(name: str) -> Measurement:
     raise SystemExit(f"unknown contender {name}")
 
 
-def _agreement(name: str, n_points: int) -> Measurement:
+def _agreement(name: str, scans: str, n_points: int) -> Measurement:
     from scipy.spatial import cKDTree  # imported before the clock starts
 
     from semantic3d.evaluation.agreement import compute_label_agreement
+    from semantic3d.io import read_points
 
     small_a, small_b = _overlapping_scans(1_000)
     compute_label_agreement([small_a], [small_b])  # warm the kernels
+    files = make_simulated_scans(n_points) if scans == "street" else make_agreement_files(n_points)
     if name == "compute_label_agreement_files (ASCII)":
         from semantic3d.evaluation.agreement import compute_label_agreement_files
 
-        files = make_agreement_files(n_points)
-        return measure_here(name, lambda: (compute_label_agreement_files(*files), 2 * n_points)[1])
-    a, b = _overlapping_scans(n_points)
-    if name == "compute_label_agreement (tiles)":
-        return measure_here(name, lambda: (compute_label_agreement([a], [b]), 2 * n_points)[1])
+        total = sum(1 for _ in files[1].open("rb")) + sum(1 for _ in files[3].open("rb"))
+        return measure_here(name, lambda: (compute_label_agreement_files(*files), total)[1])
+    a = read_points(files[0], labels_path=files[1])
+    b = read_points(files[2], labels_path=files[3])
+    total = a.n_points + b.n_points
+    if name == "compute_label_agreement (in memory)":
+        return measure_here(name, lambda: (compute_label_agreement([a], [b]), total)[1])
     if name == "cKDTree untiled":
         from semantic3d.metrics import ConfusionMatrix
 
@@ -282,7 +305,7 @@ def _agreement(name: str, n_points: int) -> Measurement:
                     labels_r[keep_r][matched],
                     labels_s[keep_s][index[matched]],
                 )
-            return 2 * n_points
+            return total
 
         return measure_here(name, untiled)
     raise SystemExit(f"unknown contender {name}")
@@ -295,7 +318,8 @@ def run_child(name: str, argument: str) -> Measurement:
     if group == "update":
         return _update(contender)
     if group == "agreement":
-        return _agreement(contender, int(argument))
+        scans, _, n_points = argument.partition(":")
+        return _agreement(contender, scans, int(n_points))
     raise SystemExit(f"unknown group {group}")
 
 
@@ -310,18 +334,7 @@ def _read_through(paths: list[Path]) -> None:
                 pass
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--labels", type=int, default=100_000_000)
-    parser.add_argument("--agreement-points", type=int, default=2_000_000)
-    parser.add_argument("--child", nargs=2, metavar=("NAME", "ARG"))
-    parser.add_argument("--skip-slow", action="store_true", help="Skip pandas and np.loadtxt.")
-    args = parser.parse_args()
-    if args.child:
-        emit(run_child(*args.child))
-        return
-
-    n = args.labels
+def _evaluation_section(n: int, *, skip_slow: bool) -> str:
     gt_dir, pred_dir, pred_zip = make_submission(n)
     _read_through([gt_dir / "scan.labels", pred_dir / "scan.labels", pred_zip])
     measure_in_child(HERE, "evaluation:semantic3d.evaluate_submission (folder)", "1000")
@@ -336,7 +349,7 @@ def main() -> None:
         "io.iter_labels x2 + ConfusionMatrix",
         "polars.read_csv + np.bincount",
     ]
-    if not args.skip_slow:
+    if not skip_slow:
         contenders += ["pandas.read_csv + sklearn", "np.loadtxt + sklearn (2 M lines)"]
     rows = [measure_in_child(HERE, f"evaluation:{c}", str(n)) for c in contenders]
     print(
@@ -347,9 +360,11 @@ def main() -> None:
             "polars.read_csv + np.bincount",
         )
     )
-    evaluation_rate = rows[0].rate
     print()
+    return f"evaluation {rows[0].rate / 1e6:.0f} M labels/s (>= 150)"
 
+
+def _update_section() -> str:
     rows = [
         measure_in_child(HERE, f"update:{c}", "0")
         for c in ("ConfusionMatrix.update", "sklearn confusion_matrix", "np.bincount(t * 9 + p)")
@@ -362,27 +377,60 @@ def main() -> None:
             "sklearn confusion_matrix",
         )
     )
-    update_ratio = rows[0].rate / rows[1].rate
     print()
+    return f"update {rows[0].rate / rows[1].rate:.0f}x sklearn (>= 10)"
 
-    m = args.agreement_points
+
+def _agreement_section(m: int) -> str:
+    make_simulated_scans(m)
     make_agreement_files(m)
-    rows = [
-        measure_in_child(HERE, f"agreement:{c}", str(m))
-        for c in (
-            "compute_label_agreement (tiles)",
-            "compute_label_agreement_files (ASCII)",
-            "cKDTree untiled",
-        )
-    ]
-    print(table(f"label agreement, 2 x {m:,} points, 5 cm", "points", rows, "cKDTree untiled"))
-    agreement_rate = rows[0].rate
-    print()
-    print(
-        f"targets: evaluation {evaluation_rate / 1e6:.0f} M labels/s (>= 150), "
-        f"update {update_ratio:.0f}x sklearn (>= 10), "
-        f"agreement {agreement_rate / 1e6:.2f} M points/s (>= 1)"
+    rates = {}
+    for scans, title in (
+        ("street", f"label agreement, simulated street, 2 stations x {m:,} points, 5 cm"),
+        ("noise", f"label agreement, volumetric noise, 2 x {m:,} points, 5 cm"),
+    ):
+        rows = [
+            measure_in_child(HERE, f"agreement:{c}", f"{scans}:{m}")
+            for c in (
+                "compute_label_agreement_files (ASCII)",
+                "compute_label_agreement (in memory)",
+                "cKDTree untiled",
+            )
+        ]
+        print(table(title, "points", rows, "cKDTree untiled"))
+        print()
+        rates[scans] = rows[0].rate
+    return (
+        f"agreement from ASCII files {rates['street'] / 1e6:.2f} M points/s "
+        f"(volumetric noise {rates['noise'] / 1e6:.2f}) (>= 1)"
     )
+
+
+SECTIONS = ("evaluation", "update", "agreement")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--labels", type=int, default=100_000_000)
+    parser.add_argument("--agreement-points", type=int, default=2_000_000)
+    parser.add_argument("--child", nargs=2, metavar=("NAME", "ARG"))
+    parser.add_argument("--skip-slow", action="store_true", help="Skip pandas and np.loadtxt.")
+    parser.add_argument(
+        "--only", choices=SECTIONS, action="append", help="Run only these sections."
+    )
+    args = parser.parse_args()
+    if args.child:
+        emit(run_child(*args.child))
+        return
+    sections = args.only or SECTIONS
+    targets = []
+    if "evaluation" in sections:
+        targets.append(_evaluation_section(args.labels, skip_slow=args.skip_slow))
+    if "update" in sections:
+        targets.append(_update_section())
+    if "agreement" in sections:
+        targets.append(_agreement_section(args.agreement_points))
+    print("targets: " + ", ".join(targets))
 
 
 if __name__ == "__main__":

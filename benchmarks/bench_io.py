@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _harness import OUT, Measurement, emit, measure_here, measure_in_child, table  # noqa: E402
+from _harness import OUT, Measurement, emit, measure_here, measure_in_child, table
 
 HERE = Path(__file__).resolve()
 NAMES = ("x", "y", "z", "intensity", "r", "g", "b")
@@ -75,7 +75,9 @@ def run_contender(name: str, path: Path) -> Measurement:
 
         read = pacsv.ReadOptions(column_names=list(NAMES), block_size=32 << 20)
         parse = pacsv.ParseOptions(delimiter=" ")
-        return measure_here(name, lambda: pacsv.read_csv(path, read_options=read, parse_options=parse).num_rows)
+        return measure_here(
+            name, lambda: pacsv.read_csv(path, read_options=read, parse_options=parse).num_rows
+        )
     if name == "pyarrow.csv.open_csv (stream)":
         import pyarrow.csv as pacsv
 
@@ -83,14 +85,18 @@ def run_contender(name: str, path: Path) -> Measurement:
         parse = pacsv.ParseOptions(delimiter=" ")
 
         def stream() -> int:
-            return sum(b.num_rows for b in pacsv.open_csv(path, read_options=read, parse_options=parse))
+            return sum(
+                b.num_rows for b in pacsv.open_csv(path, read_options=read, parse_options=parse)
+            )
 
         return measure_here(name, stream)
     if name == "pandas.read_csv (C, chunks)":
         import pandas as pd
 
         def pandas_points() -> int:
-            reader = pd.read_csv(path, sep=" ", header=None, names=NAMES, engine="c", chunksize=1 << 20)
+            reader = pd.read_csv(
+                path, sep=" ", header=None, names=NAMES, engine="c", chunksize=1 << 20
+            )
             return sum(len(frame) for frame in reader)
 
         return measure_here(name, pandas_points)
@@ -102,11 +108,15 @@ def run_contender(name: str, path: Path) -> Measurement:
     if name == "polars.read_csv":
         import polars as pl
 
-        return measure_here(name, lambda: pl.read_csv(path, has_header=False, new_columns=["label"]).height)
+        return measure_here(
+            name, lambda: pl.read_csv(path, has_header=False, new_columns=["label"]).height
+        )
     if name == "pandas.read_csv (labels)":
         import pandas as pd
 
-        return measure_here(name, lambda: len(pd.read_csv(path, header=None, engine="c", dtype=np.uint8)))
+        return measure_here(
+            name, lambda: len(pd.read_csv(path, header=None, engine="c", dtype=np.uint8))
+        )
     raise SystemExit(f"unknown contender {name}")
 
 

@@ -1,5 +1,9 @@
 from __future__ import annotations
 
+import signal
+import subprocess
+import sys
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -8,6 +12,7 @@ import pytest
 from typer.testing import CliRunner
 
 from semantic3d.cli.app import app
+from semantic3d.cli.console import guarded
 from semantic3d.io.ascii import write_ascii_points
 from semantic3d.io.formats import read_points, write_points
 from semantic3d.io.labels import read_labels, write_labels
@@ -148,3 +153,37 @@ def test_info_on_a_real_sample(shared_data: Path) -> None:
     assert result.exit_code == 0, result.output
     assert "70,840" in result.stdout and "buildings" in result.stdout
     assert "870200.010" in result.stdout  # georeferenced bounds to the millimetre
+
+
+def test_ctrl_c_exits_130_and_leaves_the_destination_as_it_was(tmp_path: Path) -> None:
+    """A real SIGINT to a real ``semantic3d convert`` process, mid-way through the output."""
+    source = tmp_path / "big.txt"
+    write_ascii_points(source, [random_cloud(400_000, seed=5)], labels_path=tmp_path / "big.labels")
+    destination = tmp_path / "out.las"
+    destination.write_bytes(b"the previous output")
+    entry = "from semantic3d.cli.app import main; main()"
+    command = [sys.executable, "-c", entry, "convert", str(source), str(destination)]
+    process = subprocess.Popen(
+        [*command, "--chunk-size", "2000"], stdout=subprocess.PIPE, stderr=subprocess.PIPE
+    )
+    try:
+        deadline = time.monotonic() + 60
+        while not list(tmp_path.glob(".out.*.partial.las")):  # writing has started
+            assert process.poll() is None and time.monotonic() < deadline, "no partial file seen"
+            time.sleep(0.01)
+        process.send_signal(signal.SIGINT)
+        _, stderr = process.communicate(timeout=60)
+    finally:
+        process.kill()
+    assert process.returncode == 130, stderr.decode()
+    assert b"Traceback" not in stderr
+    assert destination.read_bytes() == b"the previous output"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["big.labels", "big.txt", "out.las"]
+
+
+def test_interrupt_inside_a_compiled_kernel_is_an_interrupt() -> None:
+    # numba reports a Ctrl-C during a kernel as SystemError caused by KeyboardInterrupt.
+    with pytest.raises(KeyboardInterrupt), guarded():
+        raise SystemError("returned a result with an exception set") from KeyboardInterrupt()
+    with pytest.raises(SystemError), guarded():
+        raise SystemError("a real bug")

@@ -14,12 +14,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from semantic3d.core import PointCloud
 from semantic3d.core.errors import ShapeError
 from semantic3d.evaluation.agreement import (
     compute_label_agreement,
     compute_label_agreement_files,
 )
 from semantic3d.io.ascii import write_ascii_points
+from semantic3d.metrics import ConfusionMatrix
 from tests.evaluation.conftest import overlapping_scans
 
 
@@ -92,7 +94,54 @@ def test_bad_input() -> None:
     a, b = overlapping_scans()
     with pytest.raises(ShapeError, match="scan A: expected labelled points"):
         compute_label_agreement([a.with_labels(None)], [b])
+    labels = np.asarray(b.labels).copy()
+    labels[3] = 9
+    with pytest.raises(ShapeError, match=r"scan B: expected label values 0\.\.8, found 9"):
+        compute_label_agreement([a], [b.with_labels(labels)])
     with pytest.raises(ValueError, match="max_distance_m: expected a positive distance"):
         compute_label_agreement([a], [b], max_distance_m=0.0)
     with pytest.raises(ValueError, match="margin_m: expected 0 <= margin < tile size"):
         compute_label_agreement([a], [b], max_distance_m=2.0, tile_size_m=1.0)
+
+
+def _reference(
+    receiver: PointCloud, source: PointCloud, max_distance_m: float
+) -> tuple[np.ndarray, int]:
+    """One untiled cKDTree over the whole source scan: the textbook transfer."""
+    from scipy.spatial import cKDTree
+
+    keep_r = ~np.isin(np.asarray(receiver.labels), (0, 7))
+    keep_s = ~np.isin(np.asarray(source.labels), (0, 7))
+    distance, index = cKDTree(source.xyz[keep_s]).query(
+        receiver.xyz[keep_r], k=1, distance_upper_bound=max_distance_m
+    )
+    hit = np.isfinite(distance)
+    matrix = ConfusionMatrix()
+    matrix.update(
+        np.asarray(receiver.labels)[keep_r][hit],
+        np.asarray(source.labels)[keep_s][index[hit]],
+    )
+    return matrix.compute(), int(hit.sum())
+
+
+@pytest.mark.parametrize("tile_size_m", [0.7, 3.0, 50.0])
+def test_equals_an_untiled_nearest_neighbour_search(tile_size_m: float) -> None:
+    # Clustered points (dense blobs and sparse outskirts, as scans near and far from a
+    # station), so the occupancy filter both keeps and drops points.
+    rng = np.random.default_rng(4)
+    scene = rng.uniform(0.0, 1.5, (40, 3))  # blob centres both scans see
+
+    def scan(offset: float) -> PointCloud:
+        centres = scene + np.array([offset, 0.0, 0.0])
+        n = 30_000
+        spread = np.where(rng.random(n) < 0.5, 0.02, 0.3)[:, None]
+        xyz = centres[rng.integers(0, 40, n)] + rng.normal(0.0, 1.0, (n, 3)) * spread
+        return PointCloud.from_arrays(xyz, labels=rng.integers(0, 9, n).astype(np.uint8))
+
+    a, b = scan(0.0), scan(0.01)
+    result = compute_label_agreement([a], [b], max_distance_m=0.04, tile_size_m=tile_size_m)
+    for direction, (receiver, source) in zip(result.directions, ((b, a), (a, b)), strict=True):
+        matrix, n_matched = _reference(receiver, source, 0.04)
+        assert 1_000 < n_matched < 25_000
+        assert direction.n_matched == n_matched
+        np.testing.assert_array_equal(direction.confusion, matrix)

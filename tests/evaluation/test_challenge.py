@@ -73,10 +73,10 @@ def test_missing_ground_truth_lists_every_scan(tmp_path: Path) -> None:
 
 
 def test_custom_challenge_is_every_labels_file(tmp_path: Path) -> None:
-    for name in ("b.labels", "a.labels", "notes.txt"):
+    for name in ("b.labels", "a.labels", "notes.txt", "._a.labels", ".b.1f2e3d4c.partial.labels"):
         (tmp_path / name).write_bytes(b"1\n")
     challenge = custom_challenge(tmp_path)
-    assert challenge.submission_names == ("a.labels", "b.labels")
+    assert challenge.submission_names == ("a.labels", "b.labels")  # hidden files are no scans
     assert challenge.name == f"custom:{tmp_path.name}"
     assert custom_challenge(tmp_path, name="mine").name == "mine"
     assert all(s.n_points is None for s in challenge.scans)

@@ -87,6 +87,12 @@ def test_evaluate_writes_every_report(scans: Scans, tmp_path: Path) -> None:
     assert data["method"]["name"] == "RandomGuess"
     assert f"{data['scores']['mean_iou']:.3f}" in result.stdout
     assert "RandomGuess" in result.stdout and "42 s" in result.stdout
+    # one row per class, names in full: readable in an 80-column terminal
+    table = [line for line in result.stdout.splitlines() if line.startswith(("┃", "│"))]
+    assert len(table) == 12 and max(len(line) for line in table) <= 80
+    iou = data["scores"]["iou"]
+    line = next(row for row in result.stdout.splitlines() if "IoU 8 cars" in row)
+    assert (f"{iou[7]:.3f}" if iou[7] is not None else "absent") in line
     assert (out / "r.html").read_text().startswith("<!DOCTYPE html>")
     assert "| RandomGuess |" in (out / "r.md").read_text()
 
@@ -119,6 +125,10 @@ def test_stats_table_and_plot(tmp_path: Path) -> None:
     result = runner.invoke(app, ["stats", str(tmp_path / "labels"), "--plot", str(plot)])
     assert result.exit_code == 0, result.output
     assert "train" in result.stdout
+    table = [line for line in result.stdout.splitlines() if line.startswith(("┃", "│"))]
+    assert len(table) == 12 and max(len(line) for line in table) <= 80
+    cars = next(row for row in result.stdout.splitlines() if "cars" in row)
+    assert cars.split()[-2] == "2"  # 2 points of class 8
     assert plot.read_bytes().startswith(b"\x89PNG")
 
 

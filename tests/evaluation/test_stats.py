@@ -24,6 +24,7 @@ def test_counts_per_split_use_registry_names(tmp_path: Path) -> None:
     (tmp_path / "sub").mkdir()
     (tmp_path / "sub" / "sg27_station1_intensity_rgb.labels").write_bytes(labels_bytes([3, 3]))
     (tmp_path / "my_scan.labels").write_bytes(labels_bytes([5, 0, 0]))
+    (tmp_path / "._my_scan.labels").write_bytes(b"\x00\x05\x16\x07 macOS metadata")
     calls: list[tuple[int, int]] = []
     statistics = compute_class_statistics(
         tmp_path, progress=lambda done, total: calls.append((done, total))

@@ -99,6 +99,18 @@ def test_wrong_line_count(scans: Scans, tmp_path: Path) -> None:
     )
 
 
+def test_truncated_file(scans: Scans, tmp_path: Path) -> None:
+    members = scans.pred_members()
+    members["alpha.labels"] = members["alpha.labels"][:101]  # 50 lines and half of one
+    assert _problems(write_zip(tmp_path / "s.zip", members), scans) == (
+        "alpha.labels: expected 120 lines (one per point of the scan), found 51",
+    )
+    folder = scans.pred_folder(tmp_path / "s", members)
+    assert _problems(folder, scans) == (
+        "alpha.labels: expected 120 lines (one per point of the scan), found 51",
+    )
+
+
 def test_non_integer_values(scans: Scans, tmp_path: Path) -> None:
     values = [str(v) for v in scans.pred["beta.labels"]]
     values[4], values[9], values[10] = "2.0", "car", ""

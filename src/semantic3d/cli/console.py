@@ -47,11 +47,20 @@ def run_guarded(app: Callable[..., object]) -> None:
 
 @contextmanager
 def guarded() -> Iterator[None]:
-    """Inside a command: turn package errors into one red line and exit code 2."""
+    """Inside a command: turn package errors into one red line and exit code 2.
+
+    Ctrl-C while a compiled (numba) kernel runs surfaces as ``SystemError: ... returned a
+    result with an exception set`` caused by the interrupt; it is turned back into the
+    ``KeyboardInterrupt`` it is, so the command ends like any other interrupted one.
+    """
     try:
         yield
     except Semantic3DError as exc:
         raise fail(str(exc)) from None
+    except SystemError as exc:
+        if isinstance(exc.__cause__, KeyboardInterrupt):
+            raise KeyboardInterrupt from None
+        raise
 
 
 def progress_bar(*, bytes_: bool = False) -> Progress:

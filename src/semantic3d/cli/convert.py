@@ -49,7 +49,11 @@ def convert(
         DEFAULT_CHUNK_SIZE, "--chunk-size", min=1, help="Points per streamed chunk."
     ),
 ) -> None:
-    """Convert a point file between formats, streaming (constant memory)."""
+    """Convert a point file between formats, streaming (constant memory).
+
+    The output is written under a hidden temporary name and renamed when complete: an
+    error or Ctrl-C leaves no partial file and keeps what was at the destination.
+    """
     with guarded():
         in_format, out_format = detect_format(source), detect_format(destination)
         if destination.exists() and destination.resolve() == source.resolve():

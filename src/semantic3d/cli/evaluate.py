@@ -110,14 +110,24 @@ def _format(value: float) -> str:
     return "absent" if math.isnan(value) else f"{value:.3f}"
 
 
+def _transposed(title: str, header: Sequence[str], rows: Sequence[Sequence[str]]) -> Table:
+    """A table of ``rows`` (one per column of the output) with ``header`` down the side.
+
+    The paper's tables have 12 columns, too wide for a terminal; one column per result
+    (or split) and one row per quantity fits 80 characters.
+    """
+    table = Table(title=title)
+    table.add_column(header[0], style="bold")
+    for row in rows:
+        table.add_column(row[0], justify="right")
+    for i, name in enumerate(header[1:], start=1):
+        table.add_row(name, *(row[i] for row in rows))
+    return table
+
+
 def _results_table(result: EvaluationResult) -> Table:
     header, rows = results_table_rows([result])
-    table = Table(title=f"{result.challenge} (protocol v{result.protocol_version})")
-    for column in header:
-        table.add_column(column, justify="left" if column == "Method" else "right")
-    for row in rows:
-        table.add_row(*row)
-    return table
+    return _transposed(f"{result.challenge} (protocol v{result.protocol_version})", header, rows)
 
 
 def evaluate(
@@ -180,12 +190,8 @@ def evaluate(
 
 def _stats_table(statistics: ClassStatistics) -> Table:
     header, rows = class_table(statistics)
-    table = Table(title="points per class")
-    for column in header:
-        table.add_column(column, justify="left" if column == "Split" else "right")
-    for row in rows:
-        table.add_row(row[0], row[1], *(f"{int(v):,}" for v in row[2:]))
-    return table
+    shown = [[row[0], row[1], *(f"{int(v):,}" for v in row[2:])] for row in rows]
+    return _transposed("points per class", header, shown)
 
 
 def stats(
@@ -214,25 +220,23 @@ def stats(
 
 
 def _agreement_table(result: AgreementResult) -> Table:
+    # One column per direction, one row per quantity: fits an 80-column terminal.
     table = Table(title=f"label agreement (nearest neighbour within {result.max_distance_m} m)")
-    table.add_column("direction")
-    table.add_column("matched", justify="right")
-    table.add_column("mIoU", justify="right")
-    table.add_column("OA", justify="right")
-    for cls in CLASSES:
-        table.add_column(f"IoU {cls.value} {cls.name}", justify="right")
+    table.add_column("")
     for direction in result.directions:
-        s = direction.scores
-        matched = direction.matched_fraction
+        table.add_column(direction.name, justify="right")
+    directions = result.directions
+    table.add_row(
+        "matched points",
+        *(f"{d.n_matched:,} ({_percent(d.matched_fraction)})" for d in directions),
+    )
+    table.add_row("mIoU", *(_format(d.scores.mean_iou) for d in directions))
+    table.add_row("OA", *(_format(d.scores.overall_accuracy) for d in directions), end_section=True)
+    for i, cls in enumerate(CLASSES):
+        excluded = cls.value in result.excluded_values
         table.add_row(
-            direction.name,
-            f"{direction.n_matched:,} ({_percent(matched)})",
-            _format(s.mean_iou),
-            _format(s.overall_accuracy),
-            *(
-                "excluded" if cls.value in result.excluded_values else _format(float(s.iou[i]))
-                for i, cls in enumerate(CLASSES)
-            ),
+            f"IoU {cls.value} {cls.name}",
+            *("excluded" if excluded else _format(float(d.scores.iou[i])) for d in directions),
         )
     return table
 
@@ -263,7 +267,7 @@ def agreement(
         )
     with guarded():
         with progress_bar() as progress:
-            task = progress.add_task("matching tiles", total=None)
+            task = progress.add_task(f"reading {a_points.name} and {b_points.name}", total=None)
             result = compute_label_agreement_files(
                 a_points,
                 a_labels,
@@ -271,7 +275,9 @@ def agreement(
                 b_labels,
                 max_distance_m=max_distance,
                 tile_size_m=tile_size,
-                progress=lambda done, total: progress.update(task, completed=done, total=total),
+                progress=lambda done, total: progress.update(
+                    task, description="matching tiles", completed=done, total=total
+                ),
             )
         console.print(_agreement_table(result))
         if plot is not None:

@@ -15,8 +15,11 @@ within ``max_distance_m`` are counted as unmatched and left out of the matrix.
 
 Scans are streamed once into XY tiles with a halo of ``max_distance_m``
 (:class:`~semantic3d.evaluation.tilespill.TileSpill`, spilling to disk past a memory
-budget); each tile is matched with ``scipy.spatial.cKDTree`` (all cores), so memory is
-bounded by the largest tile, not the scans.
+budget), so memory is bounded by the largest tile, not the scans. In each tile a voxel
+occupancy grid (:class:`~semantic3d.evaluation.occupancy.OccupancyGrid`) drops the points
+that cannot have a neighbour in the other scan (most of them: scans overlap in part and
+are sparse far from their station), the rest is put in voxel order and matched with
+``scipy.spatial.cKDTree`` (queries on all cores).
 """
 
 from __future__ import annotations
@@ -32,6 +35,7 @@ from numpy.typing import NDArray
 from semantic3d.core.classes import N_CLASSES
 from semantic3d.core.errors import ShapeError, require
 from semantic3d.core.pointcloud import PointCloud
+from semantic3d.evaluation.occupancy import OccupancyGrid
 from semantic3d.evaluation.tilespill import CORE, HALO, TileSpill
 from semantic3d.metrics.confusion import ConfusionMatrix
 from semantic3d.metrics.scores import Scores
@@ -51,7 +55,7 @@ AgreementProgress = Callable[[int, int], None]
 """``progress(tiles_done, tiles_total)``."""
 
 _A, _B = 0, 1
-_SORT_CELL_M = 0.25  # voxel size ordering the queries of a tile
+_GRID_CELL_M = 0.05  # smallest voxel of a tile's occupancy grid (the distance when larger)
 
 
 @dataclass(frozen=True, slots=True)
@@ -111,41 +115,66 @@ def _spill_cloud(spill: TileSpill, index: int, chunks: Iterable[PointCloud], nam
     return n_points
 
 
-def _voxel_order(xyz: NDArray[np.float64], cell_m: float) -> NDArray[np.intp]:
-    """Indices that sort points by the voxel (row-major) they fall in."""
-    columns = [np.ascontiguousarray(xyz[:, axis]) for axis in range(3)]
-    cx, cy, cz = (np.floor((c - c.min()) / cell_m).astype(np.int64) for c in columns)
-    ny, nz = int(cy.max()) + 1, int(cz.max()) + 1
-    key = (cx * ny + cy) * nz + cz
-    order: NDArray[np.intp] = np.argsort(key)
-    return order
+def _gather(records: NDArray[np.float64], mask: NDArray[np.bool_]) -> NDArray[np.float64]:
+    # np.take of row indices: several times faster than boolean indexing of an (n, 4) array.
+    return np.take(records, np.flatnonzero(mask), axis=0)
 
 
 def _match_tile(
-    receiver: NDArray[np.float64],
-    source: NDArray[np.float64],
+    core: list[NDArray[np.float64]],
+    halo: list[NDArray[np.float64]],
     *,
     max_distance_m: float,
-    matrix: ConfusionMatrix,
-) -> int:
-    """Transfer labels of ``source`` onto ``receiver`` points; return how many matched."""
-    if receiver.shape[0] == 0 or source.shape[0] == 0:
-        return 0
+    matrices: dict[int, ConfusionMatrix],
+) -> dict[int, int]:
+    """Transfer labels both ways between the scans of one tile; return matches per receiver.
+
+    ``core[c]`` / ``halo[c]`` are the ``x y z label`` rows of scan ``c`` in the tile and
+    within ``max_distance_m`` around it. Only points whose voxel touches the other scan's
+    occupancy are queried, and only points near the receiving scan go into the tree
+    (:class:`~semantic3d.evaluation.occupancy.OccupancyGrid`); both filters are exact.
+    """
     from scipy.spatial import cKDTree
 
-    # A sliding-midpoint (unbalanced) tree builds ~2x faster than the default median
-    # split and queries as fast. Queries in voxel order hit the same tree nodes one after
-    # another: 2-3x faster than in file order.
-    tree = cKDTree(source[:, :3], balanced_tree=False)
-    receiver = np.take(receiver, _voxel_order(receiver[:, :3], _SORT_CELL_M), axis=0)
-    distance, index = tree.query(
-        receiver[:, :3], k=1, distance_upper_bound=max_distance_m, workers=-1
-    )
-    matched = np.isfinite(distance)
-    own = receiver[matched, 3].astype(np.uint8)
-    taken = source[index[matched], 3].astype(np.uint8)
-    matrix.update(own, taken)
-    return int(matched.sum())
+    grid = OccupancyGrid([*core, *halo], cell_m=max(_GRID_CELL_M, max_distance_m))
+    core_keys: list[NDArray[np.int64]] = []
+    halo_keys: list[NDArray[np.int64]] = []
+    for scan in (_A, _B):
+        # Voxel order: tree builds ~2-3x faster on spatially coherent input, and queries
+        # in that order hit the same tree nodes one after another (2-3x faster too).
+        keys = grid.keys(core[scan])
+        order = np.argsort(keys)
+        core[scan] = np.take(core[scan], order, axis=0)
+        core_keys.append(keys[order])
+        halo_keys.append(grid.keys(halo[scan]))
+    marks = [grid.mark(core_keys[scan], halo_keys[scan]) for scan in (_A, _B)]
+    matched = {_A: 0, _B: 0}
+    for receiver, source in ((_B, _A), (_A, _B)):
+        # Exact filters: a receiving point with no source point in its 27 voxels cannot
+        # match, and a source point with no receiving point in its 27 voxels is no one's
+        # neighbour (voxels are at least max_distance_m wide).
+        receiving = _gather(core[receiver], grid.touching(marks[source], core_keys[receiver]))
+        giving = np.concatenate(
+            [
+                _gather(core[source], grid.touching(marks[receiver], core_keys[source])),
+                _gather(halo[source], grid.touching(marks[receiver], halo_keys[source])),
+            ]
+        )
+        if receiving.shape[0] == 0 or giving.shape[0] == 0:
+            continue
+        # A sliding-midpoint (unbalanced) tree builds ~2x faster than the default median
+        # split and queries as fast.
+        tree = cKDTree(giving[:, :3], balanced_tree=False, leafsize=32)
+        distance, index = tree.query(
+            receiving[:, :3], k=1, distance_upper_bound=max_distance_m, workers=-1
+        )
+        hit = np.flatnonzero(np.isfinite(distance))
+        own = np.take(receiving[:, 3], hit).astype(np.uint8)
+        taken = np.take(giving[:, 3], np.take(index, hit)).astype(np.uint8)
+        # matrices[_B] collects A's labels onto B's points (direction A→B).
+        matrices[receiver].update(own, taken)
+        matched[receiver] = int(hit.size)
+    return matched
 
 
 def compute_label_agreement(
@@ -188,17 +217,13 @@ def compute_label_agreement(
             logger.info("spilled %d point records to disk", spill.spilled_points)
         total = spill.n_tiles
         for done, tile in enumerate(spill.tiles(), start=1):
-            for receiver, source in ((_B, _A), (_A, _B)):
-                receiving = spill.read(receiver, CORE, tile)
-                if receiving.shape[0] == 0:
-                    continue
-                giving = np.concatenate(
-                    [spill.read(source, CORE, tile), spill.read(source, HALO, tile)]
-                )
-                # matrices[_B] collects A's labels onto B's points (direction A→B).
-                matched[receiver] += _match_tile(
-                    receiving, giving, max_distance_m=max_distance_m, matrix=matrices[receiver]
-                )
+            core = [spill.read(scan, CORE, tile) for scan in (_A, _B)]
+            halo = [spill.read(scan, HALO, tile) for scan in (_A, _B)]
+            sizes = [part.shape[0] for part in (*core, *halo)]  # core A, core B, halo A, halo B
+            if (sizes[0] and sizes[1] + sizes[3]) or (sizes[1] and sizes[0] + sizes[2]):
+                found = _match_tile(core, halo, max_distance_m=max_distance_m, matrices=matrices)
+                for scan in (_A, _B):
+                    matched[scan] += found[scan]
             if progress is not None:
                 progress(done, total)
 

@@ -125,7 +125,8 @@ def custom_challenge(ground_truth_root: Path, *, name: str | None = None) -> Cha
     """A challenge made of every ``*.labels`` file in ``ground_truth_root`` (not recursive).
 
     Each file is a scan named after its stem; a submission must contain a file of the same
-    name with as many lines.
+    name with as many lines. Hidden files (``._x.labels`` left by macOS, a writer's
+    ``.x.<tag>.partial.labels``) are not scans.
     """
     if not ground_truth_root.is_dir():
         raise MissingGroundTruthError(
@@ -134,7 +135,7 @@ def custom_challenge(ground_truth_root: Path, *, name: str | None = None) -> Cha
     files = sorted(
         path
         for path in ground_truth_root.iterdir()
-        if path.suffix == LABELS_SUFFIX and path.is_file()
+        if path.suffix == LABELS_SUFFIX and not path.name.startswith(".") and path.is_file()
     )
     if not files:
         raise MissingGroundTruthError(

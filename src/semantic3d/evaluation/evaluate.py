@@ -11,7 +11,9 @@ collected before anything is reported, so an invalid submission gets one
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -26,10 +28,10 @@ from semantic3d.evaluation.contents import (
     open_submission,
     read_failure,
 )
-from semantic3d.evaluation.labelstream import LabelStream
 from semantic3d.evaluation.protocol import Protocol, load_protocol
 from semantic3d.evaluation.result import EvaluationResult, MethodInfo, ScanResult
 from semantic3d.evaluation.submission import ProgressCallback, line_count_problem
+from semantic3d.io.labelstream import LabelStream
 from semantic3d.metrics.confusion import ConfusionMatrix
 
 logger = logging.getLogger(__name__)
@@ -53,9 +55,11 @@ class _PredictionUnreadableError(Exception):
     """The prediction stream failed mid-way (corrupt member, size cap)."""
 
 
-def _read_prediction(pred: LabelStream, n_values: int) -> NDArray[np.uint8]:
+@contextmanager
+def _reading_prediction() -> Iterator[None]:
+    """Mark archive failures while reading the prediction as the submission's fault."""
     try:
-        return pred.read(n_values)
+        yield
     except READ_FAILURES as exc:
         raise _PredictionUnreadableError(exc) from exc
 
@@ -79,7 +83,8 @@ def _stream_pair(
             y_true = pending.result()
             full = y_true.shape[0] == chunk_size
             pending = pool.submit(truth.read, chunk_size) if full else None
-            y_pred = _read_prediction(pred, y_true.shape[0])
+            with _reading_prediction():
+                y_pred = pred.read(y_true.shape[0])
             n = y_pred.shape[0]
             if n and not pred.has_problems:
                 matrix.update(y_true[:n], y_pred)
@@ -89,10 +94,8 @@ def _stream_pair(
         if pending is not None:
             pending.result()
     truth.drain()
-    try:
+    with _reading_prediction():
         pred.drain()
-    except READ_FAILURES as exc:
-        raise _PredictionUnreadableError(exc) from exc
 
 
 def _evaluate_scan(

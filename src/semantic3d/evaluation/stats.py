@@ -104,6 +104,8 @@ def compute_class_statistics(
 ) -> ClassStatistics:
     """Count label values of every ``*.labels`` file under ``folder`` (recursively).
 
+    Hidden files (``._x.labels`` left by macOS, partial writes) are skipped.
+
     Args:
         folder: a folder of ``.labels`` files.
         splits: optional file stem -> split overrides; other stems are looked up in the
@@ -112,7 +114,9 @@ def compute_class_statistics(
     """
     if not folder.is_dir():
         raise DataFormatError(f"expected a folder of .labels files, found {folder}")
-    files = sorted(p for p in folder.rglob("*.labels") if p.is_file())
+    files = sorted(
+        p for p in folder.rglob("*.labels") if not p.name.startswith(".") and p.is_file()
+    )
     if not files:
         raise DataFormatError(f"{folder}: expected at least one *.labels file, found none")
     total = sum(p.stat().st_size for p in files)

@@ -20,8 +20,8 @@ from semantic3d.evaluation.contents import (
     open_submission,
     read_failure,
 )
-from semantic3d.evaluation.labelstream import LabelStream
 from semantic3d.evaluation.protocol import load_protocol
+from semantic3d.io.labelstream import LabelStream
 
 logger = logging.getLogger(__name__)
 

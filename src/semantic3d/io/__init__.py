@@ -27,10 +27,12 @@ from semantic3d.io.labels import (
     read_labels,
     write_labels,
 )
+from semantic3d.io.labelstream import LabelStream
 
 __all__ = [
     "DEFAULT_CHUNK_SIZE",
     "AsciiPointWriter",
+    "LabelStream",
     "PointFormat",
     "attach_labels",
     "count_labels",

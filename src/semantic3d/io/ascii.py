@@ -14,9 +14,8 @@ Labels live beside the points in a ``.labels`` file (:mod:`semantic3d.io.labels`
 from __future__ import annotations
 
 from collections.abc import Iterable, Iterator
-from contextlib import AbstractContextManager
 from pathlib import Path
-from types import TracebackType
+from typing import BinaryIO
 
 import numba
 import numpy as np
@@ -33,6 +32,7 @@ from semantic3d.io.chunks import (
     validate_chunk_size,
 )
 from semantic3d.io.labels import attach_labels, format_labels_bytes
+from semantic3d.io.staging import StagedPath, StagedWriter, write_chunks
 
 __all__ = [
     "COLUMNS",
@@ -75,12 +75,15 @@ def read_ascii_points(path: str | Path, *, labels_path: str | Path | None = None
     return chunks[0] if len(chunks) == 1 else PointCloud.concatenate(chunks)
 
 
-class AsciiPointWriter(AbstractContextManager["AsciiPointWriter"]):
+class AsciiPointWriter(StagedWriter):
     """Writes point chunks (and their labels, when a labels path is given) as they come.
 
     Output bytes depend only on the arrays and ``decimals``: the same data always gives
     the same file. Coordinates are rounded to ``decimals`` places (3: millimetres, as the
-    benchmark's files).
+    benchmark's files). Both files are written under temporary names and renamed into
+    place by :meth:`close` (:class:`~semantic3d.io.staging.StagedPath`); on an exception
+    inside the ``with`` block (Ctrl-C included) they are removed and the final names are
+    left as they were.
     """
 
     def __init__(
@@ -93,8 +96,17 @@ class AsciiPointWriter(AbstractContextManager["AsciiPointWriter"]):
         self.decimals = decimals
         self.n_points = 0
         self._limit = 9.0e18 / 10.0**decimals
-        self._stream = self.path.open("wb")
-        self._labels_stream = None if self.labels_path is None else self.labels_path.open("wb")
+        self._staged = [StagedPath(self.path)]
+        if self.labels_path is not None:
+            self._staged.append(StagedPath(self.labels_path))
+        self._stream = self._staged[0].temp.open("wb")
+        self._labels_stream: BinaryIO | None = None
+        try:
+            if self.labels_path is not None:
+                self._labels_stream = self._staged[1].temp.open("wb")
+        except BaseException:
+            self.abort()
+            raise
 
     def write(self, cloud: PointCloud) -> None:
         """Append ``cloud``; it must carry labels when the writer has a labels path."""
@@ -130,18 +142,23 @@ class AsciiPointWriter(AbstractContextManager["AsciiPointWriter"]):
             self._labels_stream.write(format_labels_bytes(batch.labels))
 
     def close(self) -> None:
-        """Flush and close the files."""
+        """Flush and close the files and move them to their final names."""
+        if self._stream.closed:
+            return
+        self._close_streams()
+        for staged in reversed(self._staged):  # the labels first: points mean "complete"
+            staged.commit()
+
+    def abort(self) -> None:
+        """Close and remove what was written; the final names are left untouched."""
+        self._close_streams()
+        for staged in self._staged:
+            staged.discard()
+
+    def _close_streams(self) -> None:
         self._stream.close()
         if self._labels_stream is not None:
             self._labels_stream.close()
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        traceback: TracebackType | None,
-    ) -> None:
-        self.close()
 
 
 def open_ascii_writer(
@@ -159,10 +176,7 @@ def write_ascii_points(
     decimals: int = 3,
 ) -> int:
     """Write point chunks to ``path`` (and their labels to ``labels_path``); return the count."""
-    with open_ascii_writer(path, labels_path=labels_path, decimals=decimals) as writer:
-        for chunk in chunks:
-            writer.write(chunk)
-    return writer.n_points
+    return write_chunks(open_ascii_writer(path, labels_path=labels_path, decimals=decimals), chunks)
 
 
 def _iter_point_blocks(path: Path, block_bytes: int) -> Iterator[PointCloud]:

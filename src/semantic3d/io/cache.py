@@ -30,10 +30,8 @@ import logging
 import shutil
 import uuid
 from collections.abc import Callable, Iterable, Iterator
-from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from pathlib import Path
-from types import TracebackType
 from typing import BinaryIO
 
 import numpy as np
@@ -50,6 +48,7 @@ from semantic3d.io.cache_meta import (
     SourceInfo,
 )
 from semantic3d.io.chunks import DEFAULT_CHUNK_SIZE, validate_chunk_size
+from semantic3d.io.staging import StagedWriter, write_chunks
 
 __all__ = [
     "CACHE_FORMAT",
@@ -189,7 +188,7 @@ def read_cache(path: str | Path) -> PointCloud:
     )
 
 
-class CacheWriter(AbstractContextManager["CacheWriter"]):
+class CacheWriter(StagedWriter):
     """Appends point chunks to a new cache; the folder appears, complete, on close.
 
     The first chunk decides whether a labels column exists; every later chunk must
@@ -221,16 +220,9 @@ class CacheWriter(AbstractContextManager["CacheWriter"]):
 
     def write(self, cloud: PointCloud) -> None:
         """Append ``cloud``."""
-        has_labels = cloud.labels is not None
         if self._has_labels is None:
-            self._start(has_labels)
-        elif has_labels != self._has_labels:
-            expected = "with" if self._has_labels else "without"
-            raise DataFormatError(
-                f"expected every chunk {expected} labels (as the first), found chunk at point "
-                f"#{self.n_points} {'with' if has_labels else 'without'}",
-                path=str(self.path),
-            )
+            self._start(cloud.labels is not None)
+        self.check_labels(cloud, bool(self._has_labels))
         arrays = {"xyz": cloud.xyz, "intensity": cloud.intensity, "rgb": cloud.rgb}
         if cloud.labels is not None:
             arrays["labels"] = cloud.labels
@@ -269,21 +261,6 @@ class CacheWriter(AbstractContextManager["CacheWriter"]):
             stream.close()
         shutil.rmtree(self._staging, ignore_errors=True)
 
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        traceback: TracebackType | None,
-    ) -> None:
-        if exc_type is None:
-            try:
-                self.close()
-            except BaseException:
-                self.abort()
-                raise
-        else:
-            self.abort()
-
 
 def open_cache_writer(
     path: str | Path,
@@ -303,10 +280,7 @@ def write_cache(
     labels_source: SourceInfo | None = None,
 ) -> int:
     """Write point chunks as a cache folder, streaming; return the number of points."""
-    with open_cache_writer(path, source=source, labels_source=labels_source) as writer:
-        for chunk in chunks:
-            writer.write(chunk)
-    return writer.n_points
+    return write_chunks(open_cache_writer(path, source=source, labels_source=labels_source), chunks)
 
 
 def is_cache_current(

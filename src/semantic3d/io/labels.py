@@ -1,9 +1,12 @@
 """``.labels`` files: one non-negative integer per line (the benchmark's label format).
 
 Reading streams the file in blocks of whole lines. The benchmark's files hold one digit
-per line (``0``..``8``); those take a compiled fast path that validates every byte, and
-any other shape (CRLF line ends, blanks, several digits) falls back to a general
-compiled parser for that block. Values above 255 are rejected: labels are ``uint8``.
+per line (``0``..``8``); those take a compiled fast path over all cores that validates
+every byte, and any other shape (CRLF line ends, blanks, several digits) falls back for
+that block to the checking parser :class:`~semantic3d.io.labelstream.LabelStream` runs
+(one parser for both: ``_label_kernels.parse_lines``). Values above 255 are rejected:
+labels are ``uint8``. To read a stream that is not a path (a zip member), or to collect
+every bad line rather than stop at the first, use ``LabelStream``.
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ from semantic3d.io.chunks import (
     rechunk,
     validate_chunk_size,
 )
+from semantic3d.io.staging import StagedPath
 
 MAX_LABEL_VALUE = 255
 
@@ -69,18 +73,25 @@ def count_labels(path: str | Path) -> int:
 def write_labels(path: str | Path, chunks: Iterable[ArrayLike]) -> int:
     """Write label chunks to ``path``, one decimal integer per line; return the count.
 
-    Values must be integers in 0..255. The file is written under its final name as it
-    streams; callers that need atomicity write to a temporary name and rename.
+    Values must be integers in 0..255. The file streams to a temporary name and is renamed
+    into place when complete (:class:`~semantic3d.io.staging.StagedPath`): on an error or
+    Ctrl-C, ``path`` is left as it was.
     """
     path = Path(path)
+    staged = StagedPath(path)
     written = 0
-    with path.open("wb") as stream:
-        for chunk in chunks:
-            labels = _as_label_array(chunk, path=path, first_index=written)
-            if labels.size == 0:
-                continue
-            stream.write(format_labels_bytes(labels))
-            written += labels.size
+    try:
+        with staged.temp.open("wb") as stream:
+            for chunk in chunks:
+                labels = _as_label_array(chunk, path=path, first_index=written)
+                if labels.size == 0:
+                    continue
+                stream.write(format_labels_bytes(labels))
+                written += labels.size
+    except BaseException:
+        staged.discard()
+        raise
+    staged.commit()
     return written
 
 
@@ -155,32 +166,42 @@ def _iter_label_blocks(path: Path, block_bytes: int) -> Iterator[NDArray[np.uint
     for block in iter_line_blocks(path, block_bytes=block_bytes):
         labels = _parse_block(block)
         if isinstance(labels, tuple):
-            status, bad_line = labels
-            raise _label_error(path, block, status, bad_line, first_line)
+            line, detail = labels
+            raise DataFormatError(detail, path=str(path), line=first_line - 1 + line)
         first_line += labels.size
         yield labels
 
 
-def _parse_block(block: NDArray[np.uint8]) -> NDArray[np.uint8] | tuple[int, int]:
+def _parse_block(block: NDArray[np.uint8]) -> NDArray[np.uint8] | tuple[int, str]:
+    """The labels of a block of whole lines, or its first bad line (1-based) and what is wrong.
+
+    The benchmark's one-digit lines go through the parallel fast path; anything else
+    through the checking parser :class:`~semantic3d.io.labelstream.LabelStream` uses.
+    """
     if block.size % 2 == 0:
         fast = np.empty(block.size // 2, np.uint8)
         if kernels.parse_single_digit(block, fast) == 0:
             return fast
-    out = np.empty(kernels.count_newlines(block), np.uint8)
-    n_lines, status, bad_line = kernels.parse_general(block, out, MAX_LABEL_VALUE)
-    if status != kernels.OK:
-        return status, bad_line
-    return out[:n_lines]
-
-
-def _label_error(
-    path: Path, block: NDArray[np.uint8], status: int, bad_line: int, first_line: int
-) -> DataFormatError:
-    text = line_text(block, bad_line)
-    if status == kernels.EMPTY_LINE:
+    n_lines = int(np.count_nonzero(block == 10))  # blocks end with a newline
+    out = np.empty(n_lines, np.uint8)
+    state = np.zeros(kernels.STATE_SIZE, np.int64)
+    text = np.zeros(kernels.TEXT_BYTES, np.uint8)
+    kernels.parse_lines(
+        block, 0, block.size, True, out, 0, n_lines, 0, MAX_LABEL_VALUE, state, text
+    )
+    problems = [
+        (int(state[kernels.SYNTAX_LINE]), True) if state[kernels.N_SYNTAX] else None,
+        (int(state[kernels.RANGE_LINE]), False) if state[kernels.N_RANGE] else None,
+    ]
+    found = [problem for problem in problems if problem is not None]
+    if not found:
+        return out
+    line, syntax = min(found)
+    shown = line_text(block, line - 1).strip()
+    if syntax and not shown:
         detail = "expected one integer label, found an empty line"
-    elif status == kernels.OUT_OF_RANGE:
-        detail = f"expected a label value in 0..{MAX_LABEL_VALUE}, found {text.strip()!r}"
+    elif syntax:
+        detail = f"expected one non-negative integer label, found {shown!r}"
     else:
-        detail = f"expected one non-negative integer label, found {text.strip()!r}"
-    return DataFormatError(detail, path=str(path), line=first_line + bad_line)
+        detail = f"expected a label value in 0..{MAX_LABEL_VALUE}, found {shown!r}"
+    return line, detail

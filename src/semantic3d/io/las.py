@@ -33,9 +33,8 @@ labels. See ``docs/formats.md`` for the tables and their reasons.
 from __future__ import annotations
 
 from collections.abc import Iterable, Iterator
-from contextlib import AbstractContextManager, suppress
+from contextlib import suppress
 from pathlib import Path
-from types import TracebackType
 
 import numpy as np
 from numpy.typing import NDArray
@@ -44,6 +43,7 @@ from semantic3d import __version__
 from semantic3d.core.errors import DataFormatError, MissingExtraError
 from semantic3d.core.pointcloud import PointCloud
 from semantic3d.io.chunks import DEFAULT_CHUNK_SIZE, validate_chunk_size
+from semantic3d.io.staging import StagedPath, StagedWriter, write_chunks
 
 try:
     import laspy
@@ -197,13 +197,15 @@ def read_las(path: str | Path, *, map_classification: bool = True) -> PointCloud
     return chunks[0] if len(chunks) == 1 else PointCloud.concatenate(chunks)
 
 
-class LasPointWriter(AbstractContextManager["LasPointWriter"]):
+class LasPointWriter(StagedWriter):
     """Writes point chunks to a LAS/LAZ file as they come (LAZ when the suffix is ``.laz``).
 
     The header (offsets, and whether a ``label`` dimension exists) is fixed by the first
     chunks: labels are stored when the first chunk has them (every later chunk must then
-    have them too), offsets come from the first non-empty chunk. On an exception inside
-    the ``with`` block the partial file is removed.
+    have them too), offsets come from the first non-empty chunk. The file is written
+    under a temporary name (:class:`~semantic3d.io.staging.StagedPath`) and renamed into
+    place on close; on an exception inside the ``with`` block (Ctrl-C included) it is
+    removed and the final name is left as it was.
     """
 
     def __init__(self, path: str | Path) -> None:
@@ -215,21 +217,15 @@ class LasPointWriter(AbstractContextManager["LasPointWriter"]):
         self._has_labels: bool | None = None
         self._writer: laspy.LasWriter | None = None
         self._offsets = np.zeros(3)
-        # Claim the path now so that an unwritable destination fails before any work.
-        self.path.open("wb").close()
+        self._staged = StagedPath(self.path)
+        # Claim the file now so that an unwritable destination fails before any work.
+        self._staged.temp.open("wb").close()
 
     def write(self, cloud: PointCloud) -> None:
         """Append ``cloud``."""
-        has_labels = cloud.labels is not None
         if self._has_labels is None:
-            self._has_labels = has_labels
-        elif has_labels != self._has_labels:
-            expected = "with" if self._has_labels else "without"
-            raise DataFormatError(
-                f"expected every chunk {expected} labels (as the first), found chunk at point "
-                f"#{self.n_points} {'with' if has_labels else 'without'}",
-                path=str(self.path),
-            )
+            self._has_labels = cloud.labels is not None
+        self.check_labels(cloud, self._has_labels)
         if cloud.n_points == 0:
             return
         finite = np.isfinite(cloud.xyz).all(axis=1)
@@ -261,7 +257,9 @@ class LasPointWriter(AbstractContextManager["LasPointWriter"]):
             )
         header.add_extra_dims(extra)
         self._offsets = np.asarray(offsets, dtype=np.float64)
-        self._writer = laspy.open(self.path, mode="w", header=header, do_compress=self.compress)
+        self._writer = laspy.open(
+            self._staged.temp, mode="w", header=header, do_compress=self.compress
+        )
         return self._writer
 
     def _encode(self, cloud: PointCloud, header: laspy.LasHeader) -> laspy.ScaleAwarePointRecord:
@@ -295,21 +293,15 @@ class LasPointWriter(AbstractContextManager["LasPointWriter"]):
         """Write the header's final counts and bounds and close the file."""
         writer = self._writer or self._open(np.zeros(3))
         writer.close()
+        self._staged.commit()
 
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        traceback: TracebackType | None,
-    ) -> None:
-        if exc_type is None:
-            self.close()
-            return
+    def abort(self) -> None:
+        """Close and remove the partial file; the final path is left as it was."""
         if self._writer is not None:
             # The original error matters, not one from closing a half-written file.
             with suppress(Exception):
                 self._writer.close()
-        self.path.unlink(missing_ok=True)
+        self._staged.discard()
 
 
 def open_las_writer(path: str | Path) -> LasPointWriter:
@@ -319,10 +311,7 @@ def open_las_writer(path: str | Path) -> LasPointWriter:
 
 def write_las(path: str | Path, chunks: Iterable[PointCloud]) -> int:
     """Write point chunks to a LAS/LAZ file without holding them all; return the count."""
-    with open_las_writer(path) as writer:
-        for chunk in chunks:
-            writer.write(chunk)
-    return writer.n_points
+    return write_chunks(open_las_writer(path), chunks)
 
 
 class _ChunkDecoder:

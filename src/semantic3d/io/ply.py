@@ -28,10 +28,8 @@ ASCII PLY is read too, but plyfile parses it whole: memory grows with the file.
 from __future__ import annotations
 
 from collections.abc import Iterable, Iterator
-from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from pathlib import Path
-from types import TracebackType
 from typing import BinaryIO
 
 import numpy as np
@@ -40,6 +38,7 @@ from semantic3d import __version__
 from semantic3d.core.errors import DataFormatError, MissingExtraError
 from semantic3d.core.pointcloud import PointCloud
 from semantic3d.io.chunks import DEFAULT_CHUNK_SIZE, validate_chunk_size
+from semantic3d.io.staging import StagedPath, StagedWriter, write_chunks
 
 try:
     import plyfile
@@ -128,12 +127,14 @@ def read_ply(path: str | Path) -> PointCloud:
     return chunks[0] if len(chunks) == 1 else PointCloud.concatenate(chunks)
 
 
-class PlyPointWriter(AbstractContextManager["PlyPointWriter"]):
+class PlyPointWriter(StagedWriter):
     """Writes point chunks to a binary little-endian PLY file as they come.
 
     The first chunk decides whether a ``scalar_label`` property exists; every later chunk
-    must match. The vertex count is patched into the header on close. On an exception
-    inside the ``with`` block the partial file is removed.
+    must match. The vertex count is patched into the header on close, and the file, written
+    under a temporary name (:class:`~semantic3d.io.staging.StagedPath`), renamed into
+    place. On an exception inside the ``with`` block (Ctrl-C included) it is removed and
+    the final name is left as it was.
     """
 
     def __init__(self, path: str | Path) -> None:
@@ -142,20 +143,14 @@ class PlyPointWriter(AbstractContextManager["PlyPointWriter"]):
         self._has_labels: bool | None = None
         self._count_at = 0
         self._dtype = np.dtype([])
-        self._stream: BinaryIO = self.path.open("wb")
+        self._staged = StagedPath(self.path)
+        self._stream: BinaryIO = self._staged.temp.open("wb")
 
     def write(self, cloud: PointCloud) -> None:
         """Append ``cloud``."""
-        has_labels = cloud.labels is not None
         if self._has_labels is None:
-            self._write_header(has_labels)
-        elif has_labels != self._has_labels:
-            expected = "with" if self._has_labels else "without"
-            raise DataFormatError(
-                f"expected every chunk {expected} labels (as the first), found chunk at point "
-                f"#{self.n_points} {'with' if has_labels else 'without'}",
-                path=str(self.path),
-            )
+            self._write_header(cloud.labels is not None)
+        self.check_labels(cloud, bool(self._has_labels))
         if cloud.n_points == 0:
             return
         records = np.empty(cloud.n_points, dtype=self._dtype)
@@ -190,18 +185,12 @@ class PlyPointWriter(AbstractContextManager["PlyPointWriter"]):
         self._stream.seek(self._count_at)
         self._stream.write(str(self.n_points).ljust(COUNT_WIDTH).encode("ascii"))
         self._stream.close()
+        self._staged.commit()
 
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        traceback: TracebackType | None,
-    ) -> None:
-        if exc_type is None:
-            self.close()
-            return
+    def abort(self) -> None:
+        """Close and remove the partial file; the final path is left as it was."""
         self._stream.close()
-        self.path.unlink(missing_ok=True)
+        self._staged.discard()
 
 
 def open_ply_writer(path: str | Path) -> PlyPointWriter:
@@ -211,10 +200,7 @@ def open_ply_writer(path: str | Path) -> PlyPointWriter:
 
 def write_ply(path: str | Path, chunks: Iterable[PointCloud]) -> int:
     """Write point chunks to a binary PLY file without holding them all; return the count."""
-    with open_ply_writer(path) as writer:
-        for chunk in chunks:
-            writer.write(chunk)
-    return writer.n_points
+    return write_chunks(open_ply_writer(path), chunks)
 
 
 @dataclass(frozen=True, slots=True)

@@ -1,8 +1,10 @@
 """``LabelStream``: a checking parser of ``.labels`` byte streams (files or zip members).
 
-Why not :func:`semantic3d.io.labels.iter_labels`: submissions arrive as zip members that
-must be streamed (``zipfile.open``), not paths; validation must collect *every* problem of
-a file (how many bad lines, the first one) instead of stopping at the first; and this is
+Where :func:`semantic3d.io.labels.iter_labels` reads a path and stops at the first bad
+line, ``LabelStream`` reads any binary stream (benchmark submissions arrive as zip members
+that must be streamed, never extracted) and collects *every* problem of a file (how many
+bad lines, the first one of each kind) in one pass, as submission validation must. Both
+run the same compiled parser (:func:`semantic3d.io._label_kernels.parse_lines`); this is
 the hot path of evaluation (two files parsed per scan, ~750 M labels/s each here).
 
 Format accepted: one integer a line, ``\\n`` or ``\\r\\n`` line ends, spaces or tabs
@@ -14,9 +16,22 @@ from __future__ import annotations
 
 from typing import Any, Protocol
 
-import numba
 import numpy as np
 from numpy.typing import NDArray
+
+from semantic3d.io import _label_kernels as kernels
+from semantic3d.io._label_kernels import (
+    LINES,
+    N_RANGE,
+    N_SYNTAX,
+    RANGE_LINE,
+    RANGE_VALUE,
+    STATE_SIZE,
+    SYNTAX_LINE,
+    TEXT_BYTES,
+    TEXT_LEN,
+    VALUE_CAP,
+)
 
 
 class ReadableStream(Protocol):
@@ -29,120 +44,6 @@ class ReadableStream(Protocol):
 
 DEFAULT_BLOCK_SIZE = 4 << 20
 """Bytes read from the stream at a time."""
-
-_TEXT_BYTES = 24  # bytes of the first bad line kept for the message
-
-# Slots of the int64 state array shared with the kernel.
-_LINES, _N_SYNTAX, _SYNTAX_LINE, _N_RANGE, _RANGE_LINE, _RANGE_VALUE, _TEXT_LEN = range(7)
-_STATE_SIZE = 7
-_VALUE_CAP = 10**15  # digits past this are not accumulated (no int64 overflow)
-_WINDOW = 4096  # lines checked at once by the branch-free fast path
-
-
-@numba.njit(cache=True, nogil=True)
-def _parse_lines(
-    buf: NDArray[np.uint8],
-    start: int,
-    end: int,
-    final: bool,
-    out: NDArray[np.uint8],
-    filled: int,
-    capacity: int,
-    low: int,
-    high: int,
-    state: NDArray[np.int64],
-    text: NDArray[np.uint8],
-) -> tuple[int, int]:  # pragma: no cover - compiled
-    # Hand-written hot path. Benchmark files hold one digit a line, so whole windows of
-    # "d\n" pairs are parsed and checked without branches (LLVM vectorises the loop, ~3x
-    # a per-line loop); a window holding anything else is re-parsed line by line: a
-    # per-line fast path for "d\n" / "d\r\n", then the general, checking branch.
-    i = start
-    n = filled
-    line = state[_LINES]
-    span = np.uint8(high - low) if 0 <= low <= high <= 255 else np.uint8(0)
-    lowest = np.uint8(low) if 0 <= low <= 255 else np.uint8(0)
-    slow = 0  # lines left to parse one by one after a window failed
-    while n < capacity:
-        if slow == 0 and n + _WINDOW <= capacity and i + 2 * _WINDOW <= end:
-            bad = 0
-            for k in range(_WINDOW):
-                digit = np.uint8(buf[i + 2 * k] - 48)
-                out[n + k] = digit
-                bad |= (np.uint8(digit - lowest) > span) | (buf[i + 2 * k + 1] != 10)
-            if bad == 0:
-                n += _WINDOW
-                i += 2 * _WINDOW
-                line += _WINDOW
-                continue
-            slow = _WINDOW
-        if slow > 0:
-            slow -= 1
-        if i + 2 < end:
-            c = buf[i]
-            if 48 <= c <= 57:
-                if buf[i + 1] == 10:
-                    step = 2
-                elif buf[i + 1] == 13 and buf[i + 2] == 10:
-                    step = 3
-                else:
-                    step = 0
-                if step:
-                    value = c - 48
-                    line += 1
-                    if value < low or value > high:
-                        if state[_N_RANGE] == 0:
-                            state[_RANGE_LINE] = line
-                            state[_RANGE_VALUE] = value
-                        state[_N_RANGE] += 1
-                        value = 0
-                    out[n] = value
-                    n += 1
-                    i += step
-                    continue
-        if i >= end:
-            break
-        j = i
-        while j < end and buf[j] != 10:
-            j += 1
-        if j == end and not final:
-            break  # incomplete line: wait for more bytes
-        line += 1
-        a = i
-        b = j
-        while a < b and (buf[a] == 32 or buf[a] == 9):
-            a += 1
-        while b > a and (buf[b - 1] == 13 or buf[b - 1] == 32 or buf[b - 1] == 9):
-            b -= 1
-        ok = b > a
-        value = 0
-        for k in range(a, b):
-            c = buf[k]
-            if c < 48 or c > 57:
-                ok = False
-                break
-            if value < _VALUE_CAP:
-                value = value * 10 + (c - 48)
-        if not ok:
-            if state[_N_SYNTAX] == 0:
-                state[_SYNTAX_LINE] = line
-                m = min(j - i, _TEXT_BYTES)
-                for k in range(m):
-                    text[k] = buf[i + k]
-                state[_TEXT_LEN] = m
-            state[_N_SYNTAX] += 1
-            value = 0
-        elif value < low or value > high:
-            if state[_N_RANGE] == 0:
-                state[_RANGE_LINE] = line
-                state[_RANGE_VALUE] = value
-            state[_N_RANGE] += 1
-            value = 0
-        out[n] = value
-        n += 1
-        i = j + 1 if j < end else end
-    state[_LINES] = line
-    return i, n
 
 
 class LabelStream:
@@ -180,19 +81,19 @@ class LabelStream:
         self._end = 0
         self._eof = False
         self._skipping = False  # inside an over-long line, discarding to its end
-        self._state = np.zeros(_STATE_SIZE, dtype=np.int64)
-        self._text = np.zeros(_TEXT_BYTES, dtype=np.uint8)
+        self._state = np.zeros(STATE_SIZE, dtype=np.int64)
+        self._text = np.zeros(TEXT_BYTES, dtype=np.uint8)
         self.bytes_read = 0
 
     @property
     def n_lines(self) -> int:
         """Lines parsed so far (after :meth:`drain`, the lines of the whole stream)."""
-        return int(self._state[_LINES])
+        return int(self._state[LINES])
 
     @property
     def has_problems(self) -> bool:
         """True once a line was not an integer or out of range."""
-        return bool(self._state[_N_SYNTAX] or self._state[_N_RANGE])
+        return bool(self._state[N_SYNTAX] or self._state[N_RANGE])
 
     @property
     def exhausted(self) -> bool:
@@ -218,12 +119,12 @@ class LabelStream:
     def _start_overlong_line(self) -> None:
         """A line longer than the whole buffer: count it as one syntax problem, skip it."""
         state = self._state
-        state[_LINES] += 1
-        if state[_N_SYNTAX] == 0:
-            state[_SYNTAX_LINE] = state[_LINES]
-            self._text[:] = self._buf[:_TEXT_BYTES]
-            state[_TEXT_LEN] = _TEXT_BYTES
-        state[_N_SYNTAX] += 1
+        state[LINES] += 1
+        if state[N_SYNTAX] == 0:
+            state[SYNTAX_LINE] = state[LINES]
+            self._text[:] = self._buf[:TEXT_BYTES]
+            state[TEXT_LEN] = TEXT_BYTES
+        state[N_SYNTAX] += 1
         self._pos = self._end = 0
         self._skipping = True
 
@@ -251,7 +152,7 @@ class LabelStream:
         while filled < n_values:
             if self._skipping:
                 self._skip_overlong_line()
-            self._pos, filled = _parse_lines(
+            self._pos, filled = kernels.parse_lines(
                 self._buf,
                 self._pos,
                 self._end,
@@ -286,20 +187,20 @@ class LabelStream:
         state = self._state
         found: list[str] = []
         expected = f"expected an integer label value {self._low}..{self._high}"
-        if state[_N_SYNTAX]:
-            raw = bytes(self._text[: state[_TEXT_LEN]]).rstrip(b"\r\n")
+        if state[N_SYNTAX]:
+            raw = bytes(self._text[: state[TEXT_LEN]]).rstrip(b"\r\n")
             shown = raw.decode("utf-8", "replace")
             what = f"{shown!r}" if shown.strip() else "an empty line"
             found.append(
-                f"{self.source}: line {state[_SYNTAX_LINE]}: {expected}, found {what}"
-                + _more(int(state[_N_SYNTAX]), "line is not an integer", "lines are not integers")
+                f"{self.source}: line {state[SYNTAX_LINE]}: {expected}, found {what}"
+                + _more(int(state[N_SYNTAX]), "line is not an integer", "lines are not integers")
             )
-        if state[_N_RANGE]:
-            value = int(state[_RANGE_VALUE])
-            shown_value = str(value) if value < _VALUE_CAP else "a number of 16 digits or more"
+        if state[N_RANGE]:
+            value = int(state[RANGE_VALUE])
+            shown_value = str(value) if value < VALUE_CAP else "a number of 16 digits or more"
             found.append(
-                f"{self.source}: line {state[_RANGE_LINE]}: {expected}, found {shown_value}"
-                + _more(int(state[_N_RANGE]), "line is out of range", "lines are out of range")
+                f"{self.source}: line {state[RANGE_LINE]}: {expected}, found {shown_value}"
+                + _more(int(state[N_RANGE]), "line is out of range", "lines are out of range")
             )
         return found
 

@@ -10,8 +10,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from semantic3d.evaluation.labelstream import LabelStream
 from semantic3d.io.labels import read_labels
+from semantic3d.io.labelstream import LabelStream
 
 
 def _stream(data: bytes, *, low: int = 0, high: int = 255, block_size: int = 64) -> LabelStream:
@@ -139,3 +139,15 @@ def test_long_single_digit_files_with_rare_problems(
         assert problems[0].startswith(f"x.labels: line {syntax[0] + 1}: ")
     if out_of_range:
         assert problems[-1].startswith(f"x.labels: line {out_of_range[0] + 1}: ")
+
+
+@pytest.mark.parametrize("high", [8, 9, 12, 255])
+def test_long_files_reject_non_digits_whatever_the_range(high: int) -> None:
+    """The windowed fast path checks digits, not just the range (``'x' - '0'`` is 72)."""
+    data = b"1\n" * 5_000 + b"x\n" + b"1\n" * 5_000
+    stream = _stream(data, low=0, high=high, block_size=1 << 16)
+    values = _read_all(stream, 1 << 14)
+    assert values.size == 10_001 and values[5_000] == 0
+    assert stream.problems() == [
+        f"x.labels: line 5001: expected an integer label value 0..{high}, found 'x'"
+    ]
