@@ -1,0 +1,335 @@
+"""Training the covariance baseline: class-balanced sampling, features, forest, grid search.
+
+Following Hackel et al. (2016), the forest is trained on a class-balanced sample: a fixed
+number of labelled points per class, drawn uniformly over all training scans. Labels are
+read first (cheap) to draw the sample; features are then computed only for the drawn
+points, scan by scan, so memory stays bounded however many scans are used. The grid
+search scores each hyper-parameter set by cross-validation with folds grouped by scan
+(``GroupKFold``), so no scan is in both a training and a validation fold.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from semantic3d import __version__
+from semantic3d.baselines.covariance.config import CovarianceConfig
+from semantic3d.baselines.covariance.estimator import CovarianceClassifier
+from semantic3d.baselines.covariance.model import CovarianceModel
+from semantic3d.core.classes import N_CLASSES, class_by_value
+from semantic3d.core.errors import DataFormatError, Semantic3DError, require
+from semantic3d.features.scan import iter_scan_features
+from semantic3d.io.ascii import iter_ascii_points
+from semantic3d.io.labels import iter_labels
+
+logger = logging.getLogger(__name__)
+
+Progress = Callable[[str, int, int], None]
+"""``progress(stage, done, total)``: called as scans are read and features computed."""
+
+
+class TrainingDataError(Semantic3DError, ValueError):
+    """The training scans cannot train a model (no labels, a class missing, ...)."""
+
+
+@dataclass(frozen=True, slots=True)
+class LabelledScan:
+    """A scan file and its labels file."""
+
+    name: str
+    points_path: Path
+    labels_path: Path
+
+
+@dataclass(frozen=True, slots=True)
+class TrainingSet:
+    """Sampled training rows.
+
+    Attributes:
+        features: ``(n, n_features)`` float32.
+        labels: ``(n,)`` uint8 label values.
+        groups: ``(n,)`` int64 index of each row's scan in ``scan_names``.
+        scan_names: the training scans.
+        feature_names: column names.
+        feature_time_s: time spent reading scans and computing features.
+    """
+
+    features: NDArray[np.float32]
+    labels: NDArray[np.uint8]
+    groups: NDArray[np.int64]
+    scan_names: tuple[str, ...]
+    feature_names: tuple[str, ...]
+    feature_time_s: float
+
+    def counts(self) -> dict[int, int]:
+        """Rows per label value."""
+        values, counts = np.unique(self.labels, return_counts=True)
+        return {int(v): int(c) for v, c in zip(values, counts, strict=True)}
+
+
+@dataclass(frozen=True, slots=True)
+class GridSearchResult:
+    """Cross-validated scores of every grid point (``GridSearchCV.cv_results_`` essentials).
+
+    Attributes:
+        params: the parameter sets, in grid order.
+        mean_scores: mean validation score of each set.
+        std_scores: standard deviation across folds.
+        fit_time_s: mean fit time of each set.
+        best_params: the best set.
+        best_score: its mean score.
+        scoring: the scikit-learn scorer name.
+        n_splits: folds (grouped by scan).
+    """
+
+    params: tuple[dict[str, Any], ...]
+    mean_scores: NDArray[np.float64]
+    std_scores: NDArray[np.float64]
+    fit_time_s: NDArray[np.float64]
+    best_params: dict[str, Any]
+    best_score: float
+    scoring: str
+    n_splits: int
+
+
+def find_labelled_scans(
+    data_dir: str | Path, *, names: Sequence[str] = ()
+) -> tuple[LabelledScan, ...]:
+    """The ``NAME.txt`` scans of ``data_dir`` with their ``NAME.labels`` (all, or ``names``).
+
+    Raises:
+        TrainingDataError: no scan found, a named scan missing, or a scan without labels.
+    """
+    folder = Path(data_dir)
+    if not folder.is_dir():
+        raise TrainingDataError(f"{folder}: expected a folder of NAME.txt + NAME.labels scans")
+    available = {p.stem: p for p in sorted(folder.glob("*.txt"))}
+    wanted = list(names) if names else sorted(available)
+    missing = [n for n in wanted if n not in available]
+    if missing:
+        raise TrainingDataError(
+            f"{folder}: scan(s) {missing} not found: expected NAME.txt files among "
+            f"{sorted(available) or 'none'}"
+        )
+    if not wanted:
+        raise TrainingDataError(f"{folder}: no NAME.txt scan found")
+    scans = []
+    for name in wanted:
+        labels = available[name].with_suffix(".labels")
+        if not labels.is_file():
+            raise TrainingDataError(
+                f"{available[name]}: training needs labels: expected {labels.name} beside it"
+            )
+        scans.append(LabelledScan(name, available[name], labels))
+    return tuple(scans)
+
+
+def sample_training_points(
+    label_counts: NDArray[np.int64],
+    *,
+    points_per_class: int,
+    classes: Sequence[int],
+    seed: int,
+) -> list[dict[int, NDArray[np.int64]]]:
+    """Draw ``points_per_class`` points of each class uniformly over all scans.
+
+    Args:
+        label_counts: ``(n_scans, N_CLASSES + 1)`` points per scan and label value.
+        points_per_class: draw size per class (all points when a class has fewer).
+        classes: label values to draw.
+        seed: random seed.
+
+    Returns:
+        Per scan, ``{label value: sorted ordinals among that scan's points of the class}``.
+    """
+    rng = np.random.default_rng(seed)
+    n_scans = label_counts.shape[0]
+    drawn: list[dict[int, NDArray[np.int64]]] = [{} for _ in range(n_scans)]
+    for value in classes:
+        per_scan = label_counts[:, value]
+        total = int(per_scan.sum())
+        size = min(points_per_class, total)
+        picks = np.sort(rng.choice(total, size=size, replace=False))
+        offsets = np.concatenate(([0], np.cumsum(per_scan)))
+        for scan in range(n_scans):
+            lo, hi = np.searchsorted(picks, offsets[scan : scan + 2])
+            drawn[scan][value] = picks[lo:hi] - offsets[scan]
+    return drawn
+
+
+def count_scan_labels(scan: LabelledScan) -> NDArray[np.int64]:
+    """``(N_CLASSES + 1,)`` points per label value; values above N_CLASSES are an error."""
+    counts = np.zeros(N_CLASSES + 1, np.int64)
+    seen = 0
+    for chunk in iter_labels(scan.labels_path):
+        counts += np.bincount(chunk, minlength=256)[: N_CLASSES + 1]
+        if chunk.size and int(chunk.max()) > N_CLASSES:
+            line = seen + int(np.argmax(chunk > N_CLASSES)) + 1
+            raise DataFormatError(
+                f"expected label values 0..{N_CLASSES}, found {int(chunk.max())}",
+                path=str(scan.labels_path),
+                line=line,
+            )
+        seen += chunk.size
+    return counts
+
+
+def build_training_set(
+    scans: Sequence[LabelledScan],
+    *,
+    config: CovarianceConfig,
+    progress: Progress | None = None,
+) -> TrainingSet:
+    """Sample training points class-balanced over ``scans`` and compute their features."""
+    started = time.perf_counter()
+    if not scans:
+        raise TrainingDataError("training needs at least one labelled scan")
+    counts = np.stack([count_scan_labels(scan) for scan in scans])
+    present = [v for v in range(1, N_CLASSES + 1) if counts[:, v].sum() > 0]
+    classes = list(config.sampling.classes) or present
+    missing = [v for v in classes if counts[:, v].sum() == 0]
+    if missing:
+        names = ", ".join(f"{v} ({class_by_value(v).name})" for v in missing)
+        raise TrainingDataError(
+            f"class(es) {names} have no labelled point in the training scans "
+            f"{[s.name for s in scans]}: remove them from [sampling] classes or add scans"
+        )
+    if len(classes) < 2:
+        raise TrainingDataError(
+            f"training needs at least 2 labelled classes, found {classes or 'none'} "
+            f"in {[s.name for s in scans]}"
+        )
+    drawn = sample_training_points(
+        counts,
+        points_per_class=config.sampling.points_per_class,
+        classes=classes,
+        seed=config.sampling.seed,
+    )
+    features, labels, groups = [], [], []
+    for number, scan in enumerate(scans):
+        if progress is not None:
+            progress("features", number, len(scans))
+        select = _ordinals_to_indices(scan, drawn[number])
+        if select.size == 0:
+            continue
+        for block in iter_scan_features(
+            iter_ascii_points(
+                scan.points_path,
+                labels_path=scan.labels_path,
+                chunk_size=config.prediction.chunk_size,
+            ),
+            config=config.features,
+            select=select,
+            max_points_in_memory=config.prediction.max_points_in_memory,
+            tile_size_m=config.prediction.tile_size_m,
+        ):
+            assert block.labels is not None  # read with labels_path
+            features.append(block.table.point_values())
+            labels.append(block.labels)
+            groups.append(np.full(block.point_indices.size, number, np.int64))
+        logger.info("%s: %d training points", scan.name, select.size)
+    if progress is not None:
+        progress("features", len(scans), len(scans))
+    return TrainingSet(
+        features=np.concatenate(features),
+        labels=np.concatenate(labels),
+        groups=np.concatenate(groups),
+        scan_names=tuple(s.name for s in scans),
+        feature_names=config.features.feature_names,
+        feature_time_s=time.perf_counter() - started,
+    )
+
+
+def fit_model(
+    training: TrainingSet, *, config: CovarianceConfig, n_jobs: int | None = -1
+) -> CovarianceModel:
+    """Fit the forest of ``config.forest`` on a training set."""
+    started = time.perf_counter()
+    forest = config.forest
+    classifier = CovarianceClassifier(
+        n_estimators=forest.n_estimators,
+        max_depth=forest.max_depth,
+        min_samples_leaf=forest.min_samples_leaf,
+        max_features=forest.max_features,
+        n_jobs=n_jobs,
+        random_state=config.sampling.seed,
+    ).fit(training.features, training.labels)
+    return CovarianceModel(
+        classifier=classifier,
+        config=config,
+        feature_names=training.feature_names,
+        training_scans=training.scan_names,
+        n_training_points=training.counts(),
+        seed=config.sampling.seed,
+        package_version=__version__,
+        training_time_s=training.feature_time_s + time.perf_counter() - started,
+    )
+
+
+def train_covariance_model(
+    scans: Sequence[LabelledScan],
+    *,
+    config: CovarianceConfig,
+    progress: Progress | None = None,
+) -> CovarianceModel:
+    """Sample, compute features and fit: the whole training run."""
+    return fit_model(build_training_set(scans, config=config, progress=progress), config=config)
+
+
+def run_grid_search(
+    training: TrainingSet, *, config: CovarianceConfig, n_jobs: int | None = -1
+) -> GridSearchResult:
+    """Cross-validate the grid of ``config.grid_search`` with folds grouped by scan."""
+    model_selection: Any = require("sklearn.model_selection", "ml")
+    grid = config.grid_search
+    n_scans = len(np.unique(training.groups))
+    if n_scans < 2:
+        raise TrainingDataError(
+            f"cross-validation grouped by scan needs at least 2 scans, found {n_scans}"
+        )
+    n_splits = min(grid.n_splits, n_scans)
+    search = model_selection.GridSearchCV(
+        CovarianceClassifier(n_jobs=n_jobs, random_state=config.sampling.seed),
+        grid.param_grid,
+        scoring=grid.scoring,
+        cv=model_selection.GroupKFold(n_splits=n_splits),
+        refit=False,
+        error_score="raise",
+    )
+    search.fit(training.features, training.labels, groups=training.groups)
+    results = search.cv_results_
+    return GridSearchResult(
+        params=tuple(results["params"]),
+        mean_scores=np.asarray(results["mean_test_score"], np.float64),
+        std_scores=np.asarray(results["std_test_score"], np.float64),
+        fit_time_s=np.asarray(results["mean_fit_time"], np.float64),
+        best_params=dict(search.best_params_),
+        best_score=float(search.best_score_),
+        scoring=grid.scoring,
+        n_splits=n_splits,
+    )
+
+
+def _ordinals_to_indices(
+    scan: LabelledScan, ordinals: dict[int, NDArray[np.int64]]
+) -> NDArray[np.int64]:
+    """Point indices of the drawn ordinals (k-th point of class c), streaming the labels."""
+    seen = {value: 0 for value in ordinals}
+    found: list[NDArray[np.int64]] = []
+    offset = 0
+    for chunk in iter_labels(scan.labels_path):
+        for value, wanted in ordinals.items():
+            positions = np.flatnonzero(chunk == value)
+            lo, hi = np.searchsorted(wanted, [seen[value], seen[value] + positions.size])
+            found.append(positions[wanted[lo:hi] - seen[value]] + offset)
+            seen[value] += positions.size
+        offset += chunk.size
+    return np.sort(np.concatenate(found)) if found else np.empty(0, np.int64)

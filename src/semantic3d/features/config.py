@@ -1,0 +1,75 @@
+"""``FeatureConfig``: the settings of the multi-scale feature stage."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from semantic3d.core.errors import Semantic3DError
+from semantic3d.features.names import column_names, level_feature_names
+
+MAX_LEVELS = 16
+
+
+class ConfigError(Semantic3DError, ValueError):
+    """A configuration value or file is invalid (the message names the key)."""
+
+
+@dataclass(frozen=True, slots=True)
+class FeatureConfig:
+    """Settings of the voxel pyramid and its k-nearest-neighbour features (Hackel et al. 2016).
+
+    Attributes:
+        base_voxel_size_m: voxel size of the finest pyramid level; level ``l`` has voxels of
+            ``base_voxel_size_m * 2**l``.
+        n_levels: number of pyramid levels.
+        k_neighbours: neighbours per query at every level (the query's own voxel included).
+        per_point: False (default): each point takes the features of its voxel at every
+            level (features computed once per voxel). True: every full-resolution point is
+            a query of its own at every level (the paper's definition; ~n_levels times
+            the k-NN work at full resolution).
+        colour: add HSV of the mean neighbourhood colour per level.
+        intensity: add the mean neighbourhood intensity per level.
+    """
+
+    base_voxel_size_m: float = 0.025
+    n_levels: int = 9
+    k_neighbours: int = 10
+    per_point: bool = False
+    colour: bool = False
+    intensity: bool = False
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.base_voxel_size_m < 1e3:
+            raise ConfigError(
+                f"base_voxel_size_m: expected a size in metres in (0, 1000), "
+                f"found {self.base_voxel_size_m}"
+            )
+        if not 1 <= self.n_levels <= MAX_LEVELS:
+            raise ConfigError(f"n_levels: expected 1..{MAX_LEVELS}, found {self.n_levels}")
+        if not 3 <= self.k_neighbours <= 256:
+            raise ConfigError(f"k_neighbours: expected 3..256, found {self.k_neighbours}")
+
+    @property
+    def voxel_sizes_m(self) -> tuple[float, ...]:
+        """Voxel size of every level, finest first."""
+        return tuple(self.base_voxel_size_m * 2**level for level in range(self.n_levels))
+
+    @property
+    def coarsest_voxel_size_m(self) -> float:
+        """Voxel size of the coarsest level."""
+        return self.base_voxel_size_m * 2 ** (self.n_levels - 1)
+
+    @property
+    def level_feature_names(self) -> tuple[str, ...]:
+        """Feature names computed at every level, in column order."""
+        return level_feature_names(colour=self.colour, intensity=self.intensity)
+
+    @property
+    def feature_names(self) -> tuple[str, ...]:
+        """All column names (``planarity@0.100m``), level-major."""
+        return column_names(self.voxel_sizes_m, colour=self.colour, intensity=self.intensity)
+
+    @property
+    def n_features(self) -> int:
+        """Number of feature columns."""
+        return self.n_levels * len(self.level_feature_names)

@@ -1,0 +1,72 @@
+"""Height features of a neighbourhood (Hackel et al. 2016, table 1).
+
+For a query at height ``z`` whose neighbours span ``z_min..z_max``:
+``vertical_range = z_max - z_min``, ``height_below = z - z_min``,
+``height_above = z_max - z`` (columns of :data:`~semantic3d.features.names.HEIGHT_FEATURES`).
+A query need not be one of its neighbours (per-point mode), so ``height_below`` and
+``height_above`` may be negative.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+from numpy.typing import NDArray
+
+from semantic3d.core.errors import ShapeError
+from semantic3d.features.names import HEIGHT_FEATURES
+
+N_HEIGHT_COLUMNS = len(HEIGHT_FEATURES)
+
+
+def compute_height_features(
+    points: NDArray[np.float64],
+    neighbours: NDArray[np.integer],
+    queries: NDArray[np.float64],
+) -> NDArray[np.float32]:
+    """``(m, 3)`` float32 height features of every query (see the module docstring).
+
+    Args:
+        points: ``(n, 3)`` float64 candidate neighbours.
+        neighbours: ``(m, k)`` integer indices into ``points``.
+        queries: ``(m, 3)`` float64 query points.
+    """
+    if (
+        neighbours.ndim != 2
+        or neighbours.shape[1] < 1
+        or queries.shape
+        != (
+            neighbours.shape[0],
+            3,
+        )
+    ):
+        raise ShapeError(
+            f"neighbours/queries: expected (m, k) and (m, 3), found "
+            f"{neighbours.shape} and {queries.shape}"
+        )
+    out = np.empty((neighbours.shape[0], N_HEIGHT_COLUMNS), np.float32)
+    height_kernel(points, neighbours, queries, out)
+    return out
+
+
+# Hand-written: one pass over the neighbour indices without an (m, k) gather temporary.
+@numba.njit(cache=True, nogil=True, parallel=True)
+def height_kernel(
+    points: NDArray[np.float64],
+    neighbours: NDArray[np.integer],
+    queries: NDArray[np.float64],
+    out: NDArray[np.float32],
+) -> None:  # pragma: no cover - compiled
+    """Write the 3 columns of every query into ``out`` (unchecked inputs)."""
+    m, k = neighbours.shape
+    for row in numba.prange(m):
+        low = np.inf
+        high = -np.inf
+        for j in range(k):
+            z = points[neighbours[row, j], 2]
+            low = min(low, z)
+            high = max(high, z)
+        z = queries[row, 2]
+        out[row, 0] = high - low
+        out[row, 1] = z - low
+        out[row, 2] = high - z

@@ -1,0 +1,213 @@
+"""Multi-scale features of a point cloud held in memory (Hackel et al. 2016).
+
+Build the voxel pyramid, then at every level find the k nearest level points of each
+query and compute the covariance, moment and height features (plus colour / intensity
+when asked). Queries are the level voxels containing the requested points (default) or
+the requested points themselves (``FeatureConfig.per_point``). For scans too large for
+memory, :mod:`semantic3d.features.tiling` produces identical rows tile by tile.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from semantic3d.core.errors import ShapeError
+from semantic3d.core.pointcloud import PointCloud
+from semantic3d.features.attributes import compute_attribute_features
+from semantic3d.features.config import FeatureConfig
+from semantic3d.features.covariance import N_COVARIANCE_COLUMNS, covariance_kernel
+from semantic3d.features.height import N_HEIGHT_COLUMNS, height_kernel
+from semantic3d.features.neighbourhoods import LevelIndex
+from semantic3d.features.pyramid import PyramidLevel, VoxelPyramid, build_pyramid, grid_origin
+
+
+@dataclass(frozen=True, slots=True)
+class FeatureTable:
+    """Feature rows and the row of every requested point.
+
+    In voxel mode the points of one level-0 voxel share a row (classify rows, then
+    ``labels_of_rows[point_row]``); in per-point mode every point has its own row.
+
+    Attributes:
+        names: column names (``planarity@0.100m``), level-major.
+        values: ``(n_rows, n_features)`` float32.
+        point_row: ``(n_points,)`` int64 row of each requested point, in request order.
+    """
+
+    names: tuple[str, ...]
+    values: NDArray[np.float32]
+    point_row: NDArray[np.int64]
+
+    @property
+    def n_rows(self) -> int:
+        """Number of feature rows."""
+        return int(self.values.shape[0])
+
+    def point_values(self) -> NDArray[np.float32]:
+        """``(n_points, n_features)``: the row of every requested point (a copy)."""
+        return self.values[self.point_row]
+
+
+def attribute_columns(cloud: PointCloud, config: FeatureConfig) -> NDArray[np.float64] | None:
+    """Per-point values averaged in the pyramid: ``r g b`` and/or intensity, or None."""
+    parts: list[NDArray[np.float64]] = []
+    if config.colour:
+        parts.append(cloud.rgb.astype(np.float64))
+    if config.intensity:
+        parts.append(cloud.intensity.astype(np.float64)[:, None])
+    return np.hstack(parts) if parts else None
+
+
+def build_cloud_pyramid(
+    cloud: PointCloud, *, config: FeatureConfig, origin: ArrayLike | None = None
+) -> VoxelPyramid:
+    """The voxel pyramid of ``cloud`` for ``config`` (origin from its first point by default)."""
+    if cloud.n_points == 0:
+        raise ShapeError("cannot compute features of an empty point cloud")
+    anchor = (
+        grid_origin(cloud.xyz[0], coarsest_voxel_size_m=config.coarsest_voxel_size_m)
+        if origin is None
+        else np.asarray(origin, dtype=np.float64)
+    )
+    return build_pyramid(
+        cloud.xyz,
+        base_voxel_size_m=config.base_voxel_size_m,
+        n_levels=config.n_levels,
+        origin=anchor,
+        attributes=attribute_columns(cloud, config),
+    )
+
+
+def compute_level_features(
+    index: LevelIndex,
+    attributes: NDArray[np.float64],
+    queries: NDArray[np.float64],
+    *,
+    config: FeatureConfig,
+    out: NDArray[np.float32] | None = None,
+) -> tuple[NDArray[np.float32], NDArray[np.float64]]:
+    """Features of ``queries`` against one level; also the k-th neighbour distance.
+
+    Args:
+        index: the level's points and keys.
+        attributes: ``(n_points, a)`` per-voxel attribute means of the level.
+        queries: ``(m, 3)`` float64 query points relative to the grid origin.
+        config: feature settings (k, colour, intensity).
+        out: optional ``(m, n_level_features)`` float32 destination (may be a column
+            slice of a wider table).
+
+    Returns:
+        ``(m, n_level_features)`` float32 block (``out`` when given) and ``(m,)`` k-th
+        neighbour distances.
+    """
+    queries = np.ascontiguousarray(queries, dtype=np.float64)
+    width = len(config.level_feature_names)
+    if out is None:
+        out = np.empty((queries.shape[0], width), np.float32)
+    if out.shape != (queries.shape[0], width):
+        raise ShapeError(f"out: expected ({queries.shape[0]}, {width}), found {out.shape}")
+    found = index.query(queries, k=config.k_neighbours)
+    split = N_COVARIANCE_COLUMNS + N_HEIGHT_COLUMNS
+    covariance_kernel(index.xyz, found.indices, queries, out[:, :N_COVARIANCE_COLUMNS])
+    height_kernel(index.xyz, found.indices, queries, out[:, N_COVARIANCE_COLUMNS:split])
+    if config.colour or config.intensity:
+        out[:, split:] = compute_attribute_features(
+            attributes, found.indices, colour=config.colour, intensity=config.intensity
+        )
+    return out, found.kth_distance
+
+
+def compute_multiscale_features(
+    cloud: PointCloud,
+    *,
+    config: FeatureConfig,
+    point_indices: ArrayLike | None = None,
+    origin: ArrayLike | None = None,
+) -> FeatureTable:
+    """Multi-scale features of the points of ``cloud`` (all, or ``point_indices``).
+
+    Args:
+        cloud: the whole scan (or any cloud that fits in memory).
+        config: pyramid and feature settings.
+        point_indices: points to describe (default all); training asks for a sample.
+        origin: grid anchor; default :func:`~semantic3d.features.pyramid.grid_origin` of
+            the first point, as the tiled path uses.
+    """
+    pyramid = build_cloud_pyramid(cloud, config=config, origin=origin)
+    wanted = (
+        np.arange(cloud.n_points, dtype=np.int64)
+        if point_indices is None
+        else np.asarray(point_indices, dtype=np.int64).reshape(-1)
+    )
+    if wanted.size and (wanted.min() < 0 or wanted.max() >= cloud.n_points):
+        raise ShapeError(f"point_indices: expected values in 0..{cloud.n_points - 1}")
+    width = len(config.level_feature_names)
+    if config.per_point:
+        queries = cloud.xyz[wanted] - pyramid.origin
+        values = np.empty((wanted.size, config.n_features), np.float32)
+        for level_number, level in enumerate(pyramid.levels):
+            index = LevelIndex(level.xyz, level.keys)
+            columns = values[:, level_number * width : (level_number + 1) * width]
+            compute_level_features(index, level.attributes, queries, config=config, out=columns)
+        point_row = np.arange(wanted.size, dtype=np.int64)
+        return FeatureTable(config.feature_names, values, point_row)
+
+    voxels, point_row = np.unique(pyramid.point_voxel[wanted], return_inverse=True)
+    values = np.empty((voxels.size, config.n_features), np.float32)
+    ancestor = voxels
+    for level_number, level in enumerate(pyramid.levels):
+        if level_number:
+            ancestor = pyramid.levels[level_number - 1].parent[ancestor]
+        index = LevelIndex(level.xyz, level.keys)
+
+        def compute(
+            needed: NDArray[np.int64],
+            out: NDArray[np.float32],
+            index: LevelIndex = index,
+            level: PyramidLevel = level,
+        ) -> None:
+            compute_level_features(
+                index, level.attributes, level.xyz[needed], config=config, out=out
+            )
+
+        fill_level_columns(
+            values[:, level_number * width : (level_number + 1) * width], ancestor, compute
+        )
+    return FeatureTable(config.feature_names, values, point_row.astype(np.int64))
+
+
+def fill_level_columns(
+    columns: NDArray[np.float32],
+    voxel_of_row: NDArray[np.int64],
+    compute: Callable[[NDArray[np.int64], NDArray[np.float32]], None],
+) -> None:
+    """Set ``columns[i]`` to the features of level voxel ``voxel_of_row[i]``.
+
+    ``compute(voxels, out)`` fills ``out`` with the features of distinct, sorted ``voxels``;
+    it runs once per voxel, and its rows are copied to every row of that voxel.
+    """
+    needed, inverse = np.unique(voxel_of_row, return_inverse=True)
+    if needed.size == voxel_of_row.size and np.array_equal(needed, voxel_of_row):
+        # one row per voxel, in voxel order (level 0 in voxel mode): fill in place
+        compute(needed, columns)
+        return
+    block = np.empty((needed.size, columns.shape[1]), np.float32)
+    compute(needed, block)
+    _scatter_rows(block, inverse.astype(np.int64), columns)
+
+
+# Hand-written: ``columns[:] = block[inverse]`` makes an (n_rows, width) temporary and a
+# second strided pass per level; this writes each row once.
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _scatter_rows(
+    block: NDArray[np.float32], inverse: NDArray[np.int64], out: NDArray[np.float32]
+) -> None:  # pragma: no cover - compiled
+    for row in numba.prange(inverse.size):
+        source = inverse[row]
+        for column in range(block.shape[1]):
+            out[row, column] = block[source, column]

@@ -1,0 +1,88 @@
+"""Prediction of whole scans: tiled equals in memory, input order, sidecar."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from semantic3d.baselines.covariance.config import PredictionConfig
+from semantic3d.baselines.covariance.model import CovarianceModel
+from semantic3d.baselines.covariance.predict import describe_hardware, predict_cloud, predict_scan
+from semantic3d.baselines.covariance.training import (
+    build_training_set,
+    find_labelled_scans,
+    fit_model,
+)
+from semantic3d.features import FeatureConfig
+from semantic3d.io.ascii import read_ascii_points
+from semantic3d.io.labels import read_labels
+from tests.baselines.conftest import SMALL_CONFIG
+
+
+@pytest.fixture(scope="module", params=[False, True], ids=["voxel", "per_point"])
+def model(request: pytest.FixtureRequest, scene_dir: Path) -> CovarianceModel:
+    features = dataclasses.replace(SMALL_CONFIG.features, per_point=request.param)
+    config = dataclasses.replace(SMALL_CONFIG, features=features)
+    scans = find_labelled_scans(scene_dir, names=["train_a"])
+    return fit_model(build_training_set(scans, config=config), config=config)
+
+
+def _with_prediction(model: CovarianceModel, **kwargs: object) -> CovarianceModel:
+    prediction = dataclasses.replace(model.config.prediction, **kwargs)
+    return dataclasses.replace(
+        model, config=dataclasses.replace(model.config, prediction=prediction)
+    )
+
+
+def test_tiled_prediction_equals_in_memory_prediction(
+    model: CovarianceModel, scene_dir: Path, tmp_path: Path
+) -> None:
+    scan = scene_dir / "test.txt"
+    whole = predict_scan(
+        _with_prediction(model, max_points_in_memory=10**9), scan, out_path=tmp_path / "a.labels"
+    )
+    tiled = predict_scan(
+        _with_prediction(model, max_points_in_memory=0, tile_size_m=6.4),
+        scan,
+        out_path=tmp_path / "b.labels",
+        workdir=tmp_path,
+    )
+    assert not whole.tiled and tiled.tiled
+    expected = read_labels(whole.labels_path)
+    assert expected.size == whole.n_points == tiled.n_points
+    np.testing.assert_array_equal(read_labels(tiled.labels_path), expected)
+    # the labels follow the input's point order: same as labelling the cloud in memory
+    np.testing.assert_array_equal(predict_cloud(model, read_ascii_points(scan)), expected)
+    assert not any(p.name.startswith("s3d-") for p in tmp_path.iterdir())  # scratch removed
+
+
+def test_sidecar_records_time_and_hardware(
+    model: CovarianceModel, scene_dir: Path, tmp_path: Path
+) -> None:
+    run = predict_scan(model, scene_dir / "test.txt", out_path=tmp_path / "t.labels")
+    sidecar = json.loads((tmp_path / "t.labels.json").read_text())
+    assert sidecar["n_points"] == run.n_points > 0
+    assert sidecar["runtime_s"] == pytest.approx(run.runtime_s) and run.runtime_s > 0
+    assert sidecar["hardware"]["logical_cores"] >= 1
+    assert sidecar["hardware"]["ram_bytes"] > 2**28
+    assert sidecar["training_scans"] == ["train_a"]
+    assert describe_hardware().describe().count("cores") == 1
+
+
+def test_default_output_sits_beside_the_scan(
+    model: CovarianceModel, scene_dir: Path, tmp_path: Path
+) -> None:
+    scan = tmp_path / "copy.txt"
+    scan.write_bytes((scene_dir / "test.txt").read_bytes())
+    run = predict_scan(model, scan)
+    assert Path(run.labels_path) == tmp_path / "copy.labels"
+
+
+def test_a_model_is_tied_to_its_feature_columns(model: CovarianceModel) -> None:
+    with pytest.raises(ValueError, match=r"feature rows: expected \(n, "):
+        model.predict_rows(np.zeros((3, FeatureConfig(n_levels=2).n_features), np.float32))
+    assert isinstance(model.config.prediction, PredictionConfig)

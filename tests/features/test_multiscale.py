@@ -1,0 +1,162 @@
+"""Multi-scale features: names, per-level content, and tiled == whole-scan, bit for bit."""
+
+from __future__ import annotations
+
+import colorsys
+import doctest
+
+import numpy as np
+import pytest
+
+import semantic3d.features.names as names_module
+from semantic3d.core import PointCloud
+from semantic3d.core.errors import ShapeError
+from semantic3d.features import ConfigError, FeatureConfig, compute_multiscale_features
+from semantic3d.features.attributes import compute_attribute_features
+from semantic3d.features.names import GEOMETRIC_FEATURES, parse_column_name
+from semantic3d.features.scan import iter_scan_features
+from semantic3d.features.tiling import TiledScan
+from semantic3d.io.chunks import rechunk
+from tests.baselines.scene import make_street_scene
+
+SMALL = FeatureConfig(base_voxel_size_m=0.1, n_levels=5, k_neighbours=8)
+
+
+@pytest.fixture(scope="module")
+def scene() -> PointCloud:
+    return make_street_scene(3, size_m=24.0, spacing_m=0.2, with_colour=True)
+
+
+def _chunks(cloud: PointCloud, size: int) -> list[PointCloud]:
+    return list(rechunk(iter([cloud]), size, PointCloud.concatenate))
+
+
+def test_names_doctests_pass() -> None:
+    assert doctest.testmod(names_module).failed == 0
+
+
+def test_columns_are_named_level_major() -> None:
+    config = FeatureConfig(base_voxel_size_m=0.05, n_levels=3, colour=True)
+    names = config.feature_names
+    assert len(names) == config.n_features == 3 * (len(GEOMETRIC_FEATURES) + 3)
+    assert names[0] == "sum_of_eigenvalues@0.050m"
+    assert parse_column_name(names[-1]) == ("value", 0.2)
+    with pytest.raises(ValueError, match="expected '<feature>@<size>m'"):
+        parse_column_name("planarity")
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"base_voxel_size_m": 0.0}, "base_voxel_size_m"),
+        ({"n_levels": 0}, "n_levels: expected 1..16"),
+        ({"k_neighbours": 2}, "k_neighbours: expected 3..256"),
+    ],
+)
+def test_bad_feature_config_is_rejected(kwargs: dict, match: str) -> None:
+    with pytest.raises(ConfigError, match=match):
+        FeatureConfig(**kwargs)
+
+
+def test_every_point_gets_a_finite_row_and_voxel_mates_share_it(scene: PointCloud) -> None:
+    table = compute_multiscale_features(scene, config=SMALL)
+    assert table.values.shape == (table.n_rows, SMALL.n_features)
+    assert np.isfinite(table.values).all()
+    assert table.point_row.shape == (scene.n_points,)
+    assert table.n_rows < scene.n_points  # some voxels hold several points
+    rows = table.point_values()
+    ground = scene.labels == 1
+    flat = rows[ground, table.names.index("surface_variation@0.400m")]
+    upright = rows[ground, table.names.index("verticality@0.400m")]
+    assert np.median(flat) < 0.05 and np.median(upright) < 0.1  # flat, normal along z
+    walls = rows[scene.labels == 5, table.names.index("verticality@0.400m")]
+    assert np.median(walls) > 0.5
+
+
+def test_selected_points_get_the_rows_of_the_full_computation(scene: PointCloud) -> None:
+    for per_point in (False, True):
+        config = FeatureConfig(**{**_fields(SMALL), "per_point": per_point})
+        full = compute_multiscale_features(scene, config=config).point_values()
+        pick = np.array([5, 17, 17, 400, scene.n_points - 1])
+        part = compute_multiscale_features(scene, config=config, point_indices=pick)
+        assert np.array_equal(part.point_values(), full[pick])
+
+
+def test_coarse_levels_with_fewer_points_than_k_use_all_of_them() -> None:
+    xyz = np.array([[0.0, 0, 0], [0.3, 0, 0], [0, 0.4, 0], [0.01, 0.02, 0.9]]) + 5.0
+    config = FeatureConfig(base_voxel_size_m=0.05, n_levels=6, k_neighbours=10)
+    table = compute_multiscale_features(PointCloud.from_arrays(xyz), config=config)
+    assert np.isfinite(table.values).all()
+    top = table.values[:, -len(GEOMETRIC_FEATURES) :]
+    assert np.all(top[:, GEOMETRIC_FEATURES.index("vertical_range")] == top[0, 13])  # one voxel
+
+
+@pytest.mark.parametrize(
+    ("per_point", "whole_level_points"),
+    [(False, 0), (False, 5000), (True, 0)],
+    ids=["voxel-halos", "voxel-coarse-levels-whole", "per-point-halos"],
+)
+def test_tiled_features_equal_whole_scan_features_bit_for_bit(
+    scene: PointCloud, per_point: bool, whole_level_points: int, tmp_path
+) -> None:
+    config = FeatureConfig(**{**_fields(SMALL), "per_point": per_point, "colour": True})
+    expected = compute_multiscale_features(scene, config=config).point_values()
+    got = np.full_like(expected, np.nan)
+    seen = np.zeros(scene.n_points, bool)
+    with TiledScan(
+        _chunks(scene, 7000),
+        config=config,
+        tile_size_m=3.2,
+        workdir=tmp_path,
+        whole_level_points=whole_level_points,
+    ) as scan:
+        assert len(scan.tiles) > 30  # small tiles: halos cross many tiles at coarse levels
+        for tile in scan.iter_features():
+            assert np.all(np.diff(tile.point_indices) > 0)
+            got[tile.point_indices] = tile.table.point_values()
+            seen[tile.point_indices] = True
+            np.testing.assert_array_equal(tile.labels, scene.labels[tile.point_indices])
+    assert seen.all()
+    assert np.array_equal(got, expected)
+
+
+def test_scan_features_in_memory_and_tiled_agree(scene: PointCloud) -> None:
+    select = np.arange(0, scene.n_points, 11)
+    blocks = {}
+    for limit in (10**9, 0):
+        rows = np.full((scene.n_points, SMALL.n_features), np.nan, np.float32)
+        for block in iter_scan_features(
+            _chunks(scene, 5000),
+            config=SMALL,
+            select=select,
+            max_points_in_memory=limit,
+            tile_size_m=6.4,
+        ):
+            assert block.n_scan_points == scene.n_points
+            rows[block.point_indices] = block.table.point_values()
+        blocks[limit] = rows
+    assert np.array_equal(blocks[0][select], blocks[10**9][select])
+    assert np.isnan(blocks[0][1]).all()  # not selected
+
+
+def test_hsv_and_intensity_columns() -> None:
+    attributes = np.array([[255.0, 0, 0, 10], [0, 0, 255, 30], [30, 60, 90, 0]])
+    got = compute_attribute_features(
+        attributes, np.array([[0, 1], [2, 2]], np.int64), colour=True, intensity=True
+    )
+    expected = [*colorsys.rgb_to_hsv(127.5 / 255, 0, 127.5 / 255), 20.0]
+    np.testing.assert_allclose(got[0], expected, rtol=1e-6)
+    np.testing.assert_allclose(
+        got[1, :3], colorsys.rgb_to_hsv(30 / 255, 60 / 255, 90 / 255), rtol=1e-6
+    )
+
+
+def test_empty_cloud_and_bad_indices_are_rejected(scene: PointCloud) -> None:
+    with pytest.raises(ShapeError, match="empty point cloud"):
+        compute_multiscale_features(PointCloud.empty(), config=SMALL)
+    with pytest.raises(ShapeError, match="point_indices: expected values in"):
+        compute_multiscale_features(scene, config=SMALL, point_indices=[scene.n_points])
+
+
+def _fields(config: FeatureConfig) -> dict:
+    return {name: getattr(config, name) for name in config.__dataclass_fields__}
