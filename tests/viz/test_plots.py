@@ -34,7 +34,7 @@ def test_iou_bars_mark_absent_classes() -> None:
     figure = plot_iou_bars(iou, mean_iou=0.75, class_names=["a", "b", "c"])
     texts = [t.get_text() for t in figure.axes[0].texts]
     assert texts[:3] == ["0.500", "absent", "1.000"]
-    assert "mIoU 0.750" in texts
+    assert "mIoU\n0.750" in texts
     assert figure_to_png(figure).startswith(PNG)
 
 

@@ -131,7 +131,16 @@ def plot_iou_bars(
         )
     if mean_iou is not None and np.isfinite(mean_iou):
         axes.axhline(mean_iou, color="black", linestyle="--", linewidth=1)
-        axes.text(n - 0.5, mean_iou + 0.01, f"mIoU {mean_iou:.3f}", ha="right", fontsize=8)
+        # Outside the plot, right of the axis, so it never covers a bar's own label.
+        axes.text(
+            1.01,
+            mean_iou,
+            f"mIoU\n{mean_iou:.3f}",
+            transform=axes.get_yaxis_transform(),
+            ha="left",
+            va="center",
+            fontsize=8,
+        )
     axes.set_ylim(0, 1.08)
     axes.set_xticks(range(n), names, rotation=45, ha="right")
     axes.set_ylabel("IoU")
