@@ -168,7 +168,9 @@ def test_ctrl_c_exits_130_and_leaves_the_destination_as_it_was(tmp_path: Path) -
     )
     try:
         deadline = time.monotonic() + 60
-        while not list(tmp_path.glob(".out.*.partial.las")):  # writing has started
+        # Interrupt once points are being written (the partial file has content), as a
+        # user's Ctrl-C mid-way would.
+        while not any(p.stat().st_size > 0 for p in tmp_path.glob(".out.*.partial.las")):
             assert process.poll() is None and time.monotonic() < deadline, "no partial file seen"
             time.sleep(0.01)
         process.send_signal(signal.SIGINT)
