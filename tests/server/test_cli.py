@@ -56,6 +56,13 @@ def test_admin_commands_set_up_a_server(
     )
     assert user.exit_code == 0, user.output
     assert "account root created (admin)" in user.output
+    run(cli, "admin", "create-user", "bob", "--data-dir", data, input=f"{PASSWORD}\n" * 2)
+    promoted = run(cli, "admin", "set-admin", "bob", "--data-dir", data)
+    assert promoted.exit_code == 0 and "bob is now an admin" in promoted.output
+    demoted = run(cli, "admin", "set-admin", "BOB", "--revoke", "--data-dir", data)
+    assert demoted.exit_code == 0 and "bob is no longer an admin" in demoted.output
+    unknown = run(cli, "admin", "set-admin", "carol", "--data-dir", data)
+    assert unknown.exit_code == 2 and "no account named 'carol'" in unknown.output
     token = run(cli, "admin", "create-token", "root", "--data-dir", data)
     assert token.exit_code == 0 and token.output.strip().startswith("s3d_")
     assert run(cli, "worker", "--once", "--data-dir", data).output.strip() == "queue empty"

@@ -34,8 +34,37 @@ def test_migrations_match_the_models(settings: Settings) -> None:
     with engine.connect() as connection:
         assert compare_metadata(MigrationContext.configure(connection), Base.metadata) == []
         version = connection.execute(text("SELECT version_num FROM alembic_version")).scalar()
-    assert version == "0001"
+    assert version == "0002"
     assert set(inspect(engine).get_table_names()) >= {"users", "submissions", "jobs"}
+
+
+def test_upgrading_a_database_with_accounts_keeps_them_usable(settings: Settings) -> None:
+    from alembic import command
+    from alembic.config import Config
+
+    from semantic3d.server.accounts import authenticate, create_user
+    from semantic3d.server.db import MIGRATIONS_DIR
+
+    engine = create_db_engine(settings)
+    config = Config()
+    config.set_main_option("script_location", str(MIGRATIONS_DIR))
+    with engine.begin() as connection:
+        config.attributes["connection"] = connection
+        command.upgrade(config, "0001")
+        connection.execute(
+            text(
+                "INSERT INTO users (username, password_hash, is_admin, created_at, quota_epoch) "
+                "VALUES ('old', 'x', 0, '2026-01-01 00:00:00', 0)"
+            )
+        )
+    run_migrations(engine)
+    factory = create_session_factory(engine)
+    with factory() as session:
+        old = session.query(User).filter_by(username="old").one()
+        assert old.session_epoch == 0
+    create_user(factory, "alice", "correct horse battery")
+    user = authenticate(factory, settings, "alice", "correct horse battery", address="a")
+    assert user.session_epoch == 0
 
 
 def test_migrations_are_idempotent_and_safe_to_run_concurrently(settings: Settings) -> None:

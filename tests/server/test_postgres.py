@@ -125,24 +125,40 @@ def test_submission_flow_on_postgresql(pg_harness: Harness) -> None:
     assert 0 < entries[0]["mean_iou"] < 1
 
 
-def test_quota_is_race_free_on_postgresql(pg_harness: Harness) -> None:
+@pytest.mark.parametrize("cooldown_h", [0, 72])
+def test_quota_is_race_free_on_postgresql(
+    tmp_path: Path, ground_truth_dir: Path, postgres_url: str, cooldown_h: float
+) -> None:
     from .test_quota import _race
 
-    token = pg_harness.user_token("alice")
-    for round_index in range(3):
-        uploads = [
-            pg_harness.upload(
-                token, submission_zip(noisy_predictions(ground_truth_arrays(), 0.9, s))
-            )
-            for s in range(4)
-        ]
-        outcomes = _race(pg_harness, uploads, user_id=1)
-        assert outcomes.count("ok") == 1, (round_index, outcomes)
-        assert pg_harness.work()
-        for upload_id in uploads:
-            pg_harness.client.delete(
-                f"/api/uploads/{upload_id}", headers={"Authorization": f"Bearer {token}"}
-            )
+    settings = make_settings(
+        tmp_path / "data",
+        database_url=postgres_url,
+        max_open_uploads=8,
+        submission_cooldown_h=cooldown_h,
+        upload_session_ttl_s=96 * 3600,  # uploads may start during the cooldown
+    )
+    harnesses = build_harness(settings, ground_truth_dir)
+    pg_harness = next(harnesses)
+    try:
+        token = pg_harness.user_token("alice")
+        for round_index in range(3):
+            uploads = [
+                pg_harness.upload(
+                    token, submission_zip(noisy_predictions(ground_truth_arrays(), 0.9, s))
+                )
+                for s in range(4)
+            ]
+            outcomes = _race(pg_harness, uploads, user_id=1)
+            expected_ok = 1 if round_index == 0 or cooldown_h == 0 else 0
+            assert outcomes.count("ok") == expected_ok, (round_index, outcomes)
+            assert pg_harness.work() is (expected_ok == 1)
+            for upload_id in uploads:
+                pg_harness.client.delete(
+                    f"/api/uploads/{upload_id}", headers={"Authorization": f"Bearer {token}"}
+                )
+    finally:
+        harnesses.close()
 
 
 def test_concurrent_workers_lease_each_job_once_on_postgresql(pg_harness: Harness) -> None:
@@ -174,6 +190,38 @@ def test_concurrent_workers_lease_each_job_once_on_postgresql(pg_harness: Harnes
     for thread in threads:
         thread.join()
     assert sorted(leased) == sorted(set(leased)) and len(leased) == 6
+
+
+def test_open_upload_limit_holds_under_concurrency_on_postgresql(pg_harness: Harness) -> None:
+    from semantic3d.server.errors import ConflictError
+    from semantic3d.server.uploads import create_upload
+
+    pg_harness.user_token("alice")
+    limit = pg_harness.settings.max_open_uploads
+    outcomes: list[str] = []
+    barrier = threading.Barrier(limit + 4)
+
+    def create(index: int) -> None:
+        barrier.wait()
+        try:
+            create_upload(
+                pg_harness.state.factory,
+                pg_harness.settings,
+                user_id=1,
+                challenge="toy",
+                size_bytes=100 + index,
+                filename="preds.zip",
+            )
+            outcomes.append("ok")
+        except ConflictError:
+            outcomes.append("refused")
+
+    threads = [threading.Thread(target=create, args=(i,)) for i in range(limit + 4)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert outcomes.count("ok") == limit and outcomes.count("refused") == 4
 
 
 def test_login_throttling_on_postgresql(pg_harness: Harness) -> None:

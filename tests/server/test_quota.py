@@ -26,9 +26,10 @@ from .conftest import (
 
 @pytest.fixture
 def cooldown_harness(tmp_path: Path, ground_truth_dir: Path) -> Iterator[Harness]:
-    """A server with the default 72 h cooldown."""
+    """A server with the default 72 h cooldown; uploads live 96 h, so finalize refuses."""
     yield from build_harness(
-        make_settings(tmp_path / "data", submission_cooldown_h=72), ground_truth_dir
+        make_settings(tmp_path / "data", submission_cooldown_h=72, upload_session_ttl_s=96 * 3600),
+        ground_truth_dir,
     )
 
 
@@ -50,13 +51,37 @@ def test_second_submission_within_the_cooldown_is_refused(cooldown_harness: Harn
     assert harness.submit(harness.user_token("bob"), _data()).status_code == 201
 
 
-def test_cooldown_is_checked_before_a_large_upload_starts(cooldown_harness: Harness) -> None:
+def test_cooldown_is_checked_before_a_large_upload_starts(
+    tmp_path: Path, ground_truth_dir: Path
+) -> None:
+    harnesses = build_harness(
+        make_settings(tmp_path / "data", submission_cooldown_h=72), ground_truth_dir
+    )
+    harness = next(harnesses)
+    token = harness.user_token("alice")
+    headers = {"Authorization": f"Bearer {token}"}
+    harness.submit(token, _data())
+    harness.work()
+    # The 72 h cooldown outlasts a 48 h upload session: refused before any byte is sent.
+    refused = harness.client.post(
+        "/api/uploads", json={"challenge": "toy", "size_bytes": 6 << 30}, headers=headers
+    )
+    assert refused.status_code == 429
+    assert "would expire before then" in refused.json()["error"]
+    retry = int(refused.headers["Retry-After"])
+    assert 23 * 3600 < retry <= 24 * 3600 + 1
+    assert not list(harness.settings.uploads_dir.iterdir())
+    harnesses.close()
+
+
+def test_an_upload_finishing_after_the_cooldown_may_start_during_it(
+    cooldown_harness: Harness,
+) -> None:
     harness = cooldown_harness
     token = harness.user_token("alice")
     harness.submit(token, _data())
     harness.work()
-    # create_upload does not check the quota (the upload may be finalized later), but
-    # finalize does, and keeps the upload so it can be finalized once allowed.
+    # Finalize still enforces the cooldown, and keeps the upload for later.
     upload_id = harness.upload(token, _data(2))
     assert harness.finalize(token, upload_id).status_code == 429
     status = harness.client.get(
@@ -128,7 +153,12 @@ def test_simultaneous_finalizes_cannot_both_pass(
     tmp_path: Path, ground_truth_dir: Path, cooldown_h: float
 ) -> None:
     harness_iter = build_harness(
-        make_settings(tmp_path / "data", submission_cooldown_h=cooldown_h, max_open_uploads=8),
+        make_settings(
+            tmp_path / "data",
+            submission_cooldown_h=cooldown_h,
+            max_open_uploads=8,
+            upload_session_ttl_s=96 * 3600,  # uploads may start during the cooldown
+        ),
         ground_truth_dir,
     )
     harness = next(harness_iter)
@@ -151,3 +181,18 @@ def test_simultaneous_finalizes_cannot_both_pass(
         assert total == (rounds if cooldown_h == 0 else 1)
     finally:
         harness_iter.close()
+
+
+def test_an_upload_to_a_challenge_closed_meanwhile_is_not_queued(harness: Harness) -> None:
+    from semantic3d.server.challenges import set_challenge_open
+
+    token = harness.user_token("alice")
+    upload_id = harness.upload(token, _data())
+    set_challenge_open(harness.state.factory, "toy", is_open=False)
+    refused = harness.finalize(token, upload_id)
+    assert refused.status_code == 400 and "closed" in refused.json()["error"]
+    with harness.state.factory() as session:
+        assert session.scalar(select(func.count()).select_from(Submission)) == 0
+    assert not list(harness.settings.submissions_dir.iterdir())
+    set_challenge_open(harness.state.factory, "toy", is_open=True)
+    assert harness.finalize(token, upload_id).status_code == 201  # kept until it expires

@@ -49,7 +49,11 @@ def test_ground_truth_folder_is_private_to_the_server_user(harness: Harness) -> 
 @pytest.fixture
 def throttled(tmp_path: Path, ground_truth_dir: Path) -> Iterator[Harness]:
     settings = make_settings(
-        tmp_path / "data", login_max_failures=3, login_max_failures_per_ip=50, login_window_s=600
+        tmp_path / "data",
+        login_max_failures=3,
+        login_max_failures_per_ip=50,
+        login_max_failures_per_account=6,
+        login_window_s=600,
     )
     yield from build_harness(settings, ground_truth_dir)
 
@@ -67,6 +71,52 @@ def test_brute_force_login_is_throttled(throttled: Harness) -> None:
     # Other accounts can still log in.
     throttled.user_token("bob")
     assert web_login(client, "bob", PASSWORD).status_code == 303
+
+
+def _guess(harness: Harness, password: str, address: str) -> str:
+    from semantic3d.server.accounts import authenticate
+    from semantic3d.server.errors import AuthenticationError, ThrottledError
+
+    try:
+        authenticate(harness.state.factory, harness.settings, "alice", password, address=address)
+    except AuthenticationError:
+        return "wrong"
+    except ThrottledError as exc:
+        return f"throttled {exc.retry_after_s}"
+    return "in"
+
+
+def test_a_stranger_cannot_lock_the_owner_out(throttled: Harness) -> None:
+    throttled.user_token("alice")
+    outcomes = [_guess(throttled, "wrong password", "203.0.113.9") for _ in range(5)]
+    assert outcomes[:3] == ["wrong"] * 3
+    assert all(outcome.startswith("throttled") for outcome in outcomes[3:])
+    # The owner, from elsewhere, still gets in.
+    assert _guess(throttled, PASSWORD, "198.51.100.7") == "in"
+
+
+def test_distributed_guessing_is_capped_per_account(throttled: Harness) -> None:
+    throttled.user_token("alice")
+    outcomes = [_guess(throttled, "wrong password", f"10.0.0.{i}") for i in range(10)]
+    assert outcomes[:6] == ["wrong"] * 6  # at most login_max_failures_per_account checked
+    assert all(outcome.startswith("throttled") for outcome in outcomes[6:])
+    assert _guess(throttled, PASSWORD, "10.0.1.1").startswith("throttled")
+
+
+def test_hammering_on_does_not_prolong_the_lock(throttled: Harness) -> None:
+    from sqlalchemy import func, select
+
+    from semantic3d.server.models import LoginFailure
+
+    throttled.user_token("alice")
+    for _ in range(3):
+        assert _guess(throttled, "wrong password", "203.0.113.9") == "wrong"
+    retries = [_guess(throttled, "wrong password", "203.0.113.9") for _ in range(20)]
+    assert all(outcome.startswith("throttled") for outcome in retries)
+    # Only the three checked guesses are on record: the lock ends when Retry-After says.
+    with throttled.state.factory() as session:
+        assert session.scalar(select(func.count()).select_from(LoginFailure)) == 3
+    assert max(int(outcome.split()[1]) for outcome in retries) <= 600
 
 
 def test_a_successful_login_clears_the_failures(throttled: Harness) -> None:
@@ -198,3 +248,87 @@ def test_no_route_serves_files_from_the_data_dir(harness: Harness) -> None:
     assert static_root == STATIC_DIR.resolve()
     assert not static_root.is_relative_to(harness.settings.data_dir)
     assert not harness.settings.data_dir.is_relative_to(static_root)
+
+
+def test_large_form_and_json_bodies_are_refused_unread(harness: Harness) -> None:
+    from semantic3d.server.app import MAX_BODY_BYTES
+
+    token = harness.user_token("alice")
+    big = "x" * (MAX_BODY_BYTES + 1)
+    page = harness.client.post("/login", data={"username": "alice", "password": big})
+    assert page.status_code == 413 and "at most" in page.text
+    upload_id = "0" * 32
+    api = harness.client.post(
+        f"/api/uploads/{upload_id}/finalize",
+        json={"method": {"name": "m", "description": big}},
+        headers={"Authorization": f"Bearer {token}"},
+    )
+    assert api.status_code == 413 and "/api/uploads" in api.json()["error"]
+
+    def chunks(n_blocks: int) -> Iterator[bytes]:
+        yield b'{"challenge": "toy", "filename": "'
+        for _ in range(n_blocks):
+            yield b"z" * (256 << 10)
+        yield b'", "size_bytes": 10}'
+
+    headers = {"Authorization": f"Bearer {token}", "Content-Type": "application/json"}
+    # Without Content-Length (chunked): counted as it arrives.
+    chunked = harness.client.post("/api/uploads", content=chunks(5), headers=headers)
+    assert chunked.status_code == 413 and "at most" in chunked.json()["error"]
+    form = harness.client.post(
+        "/login",
+        content=chunks(5),
+        headers={"Content-Type": "application/x-www-form-urlencoded"},
+    )
+    assert form.status_code == 413 and "text/html" in form.headers["content-type"]
+    small = harness.client.post("/api/uploads", content=chunks(0), headers=headers)
+    assert small.status_code == 201, small.text
+    # Ordinary requests and upload chunks (which stream to disk) are not affected.
+    assert web_login(harness.client, "alice", PASSWORD).status_code == 303
+    assert harness.upload(token, b"y" * (MAX_BODY_BYTES + 10), chunk=MAX_BODY_BYTES * 2)
+
+
+def _csp(response) -> dict[str, list[str]]:  # type: ignore[no-untyped-def]
+    directives = {}
+    for part in response.headers["content-security-policy"].split(";"):
+        name, *values = part.split()
+        directives[name] = values
+    return directives
+
+
+def test_api_docs_page_may_load_what_it_needs_and_only_it(harness: Harness) -> None:
+    import re
+    from urllib.parse import urlsplit
+
+    page = harness.client.get("/api/docs")
+    assert page.status_code == 200
+    policy = _csp(page)
+    scripts = re.findall(r'<script src="([^"]+)"', page.text)
+    styles = re.findall(r'<link type="text/css" rel="stylesheet" href="([^"]+)"', page.text)
+    assert scripts and styles
+    for url, directive in [(u, "script-src") for u in scripts] + [(u, "style-src") for u in styles]:
+        origin = "{0.scheme}://{0.netloc}".format(urlsplit(url))
+        assert origin in policy[directive], (url, policy[directive])
+    assert "<script>" in page.text and "'unsafe-inline'" in policy["script-src"]
+    # Every other page keeps the strict policy.
+    for url in ("/", "/login", "/api/challenges", "/api/openapi.json"):
+        strict = _csp(harness.client.get(url))
+        assert strict["script-src"] == ["'self'"] and strict["style-src"] == ["'self'"], url
+
+
+def test_logging_out_ends_the_session_even_for_a_copied_cookie(harness: Harness) -> None:
+    harness.user_token("alice")
+    client = harness.client
+    assert web_login(client, "alice", PASSWORD).status_code == 303
+    stolen = client.cookies.get("semantic3d_session")
+    assert stolen and client.get("/account").status_code == 200
+    logout = client.post("/logout", data={"csrf_token": form_csrf(client.get("/account").text)})
+    assert logout.status_code == 200  # redirected home
+    client.cookies.clear()
+    client.cookies.set("semantic3d_session", stolen)
+    replay = client.get("/account", follow_redirects=False)
+    assert replay.status_code == 303 and replay.headers["location"].startswith("/login")
+    # Logging in again works and gives a working session.
+    client.cookies.clear()
+    assert web_login(client, "alice", PASSWORD).status_code == 303
+    assert "Account alice" in client.get("/account").text

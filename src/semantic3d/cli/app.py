@@ -61,3 +61,7 @@ for _module_name in _COMMAND_MODULES:
 def main() -> None:
     """Console-script entry point."""
     run_guarded(app)
+
+
+if __name__ == "__main__":
+    main()

@@ -16,10 +16,13 @@ import typer
 from semantic3d.cli.console import console, err_console, guarded, progress_bar
 
 _DATA_DIR = typer.Option(
-    None, "--data-dir", help="Data folder [env SEMANTIC3D_DATA_DIR, default ./semantic3d-data]."
+    None, "--data-dir", help="Data folder (default: $SEMANTIC3D_DATA_DIR, else ./semantic3d-data)."
 )
 _DATABASE_URL = typer.Option(
-    None, "--database-url", help="SQLAlchemy URL [env SEMANTIC3D_DATABASE_URL; default SQLite]."
+    None,
+    "--database-url",
+    help="SQLAlchemy URL, e.g. postgresql+psycopg://user@host/db "
+    "(default: $SEMANTIC3D_DATABASE_URL, else SQLite in the data folder).",
 )
 
 
@@ -51,7 +54,8 @@ def serve(
     worker: bool | None = typer.Option(
         None,
         "--worker/--no-worker",
-        help="Run the evaluation worker in this process [default: yes with SQLite].",
+        help="Run the evaluation worker in this process (default: yes with SQLite, "
+        "no with PostgreSQL: run `semantic3d worker` beside it).",
     ),
     data_dir: Path | None = _DATA_DIR,
     database_url: str | None = _DATABASE_URL,
@@ -119,9 +123,9 @@ def submit(
         ..., "--token", envvar="SEMANTIC3D_TOKEN", help="API token from your account page."
     ),
     method: str = typer.Option(..., "--method", help="Method name for the leaderboard."),
-    description: str = typer.Option("", "--description"),
-    paper_url: str = typer.Option("", "--paper-url"),
-    code_url: str = typer.Option("", "--code-url"),
+    description: str = typer.Option("", "--description", help="Method description."),
+    paper_url: str = typer.Option("", "--paper-url", help="Link to the paper (http/https)."),
+    code_url: str = typer.Option("", "--code-url", help="Link to the code (http/https)."),
     runtime_s: float | None = typer.Option(None, "--runtime-s", help="Run time T in seconds."),
     hardware: str | None = typer.Option(None, "--hardware", help="e.g. '1x A100, 32 cores'."),
     wait: bool = typer.Option(False, "--wait", help="Wait for the evaluation and show scores."),
@@ -200,8 +204,8 @@ def add_challenge(
     link: bool = typer.Option(
         False, "--link", help="Symlink the files instead of copying them under the data dir."
     ),
-    title: str | None = typer.Option(None, "--title"),
-    description: str = typer.Option("", "--description"),
+    title: str | None = typer.Option(None, "--title", help="Shown on the pages (default: NAME)."),
+    description: str = typer.Option("", "--description", help="Shown above the leaderboard."),
     data_dir: Path | None = _DATA_DIR,
     database_url: str | None = _DATABASE_URL,
 ) -> None:
@@ -226,10 +230,11 @@ def add_challenge(
 
 @admin_app.command("create-user")
 def create_user(
-    username: str = typer.Argument(...),
+    username: str = typer.Argument(..., help="3-32 characters: a-z, 0-9, '_', '.', '-'."),
     password: str = typer.Option(
         ...,
         "--password",
+        help="At least 8 characters; prompted for (hidden) when not given.",
         envvar="SEMANTIC3D_NEW_PASSWORD",
         prompt=True,
         hide_input=True,
@@ -239,7 +244,7 @@ def create_user(
     data_dir: Path | None = _DATA_DIR,
     database_url: str | None = _DATABASE_URL,
 ) -> None:
-    """Create an account (``--admin`` for an administrator)."""
+    """Create an account (--admin for an administrator; the password is prompted for)."""
     with guarded():
         from semantic3d.server.accounts import create_user as create
 
@@ -248,9 +253,27 @@ def create_user(
         console.print(f"account {user.username} created" + (" (admin)" if admin else ""))
 
 
+@admin_app.command("set-admin")
+def set_admin(
+    username: str = typer.Argument(..., help="An existing account."),
+    revoke: bool = typer.Option(False, "--revoke", help="Take the admin role away instead."),
+    data_dir: Path | None = _DATA_DIR,
+    database_url: str | None = _DATABASE_URL,
+) -> None:
+    """Give an existing account the admin role (or take it away with --revoke)."""
+    with guarded():
+        from semantic3d.server.accounts import set_admin as update
+
+        settings = _settings(data_dir, database_url)
+        user = update(_database(settings), username, is_admin=not revoke)
+        console.print(
+            f"account {user.username} is {'now' if user.is_admin else 'no longer'} an admin"
+        )
+
+
 @admin_app.command("create-token")
 def create_token(
-    username: str = typer.Argument(...),
+    username: str = typer.Argument(..., help="The account the token acts for."),
     name: str = typer.Option("cli", "--name", help="Label shown on the account page."),
     data_dir: Path | None = _DATA_DIR,
     database_url: str | None = _DATABASE_URL,

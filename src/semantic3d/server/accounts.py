@@ -15,7 +15,7 @@ from datetime import datetime, timedelta
 
 from argon2 import PasswordHasher
 from argon2.exceptions import InvalidHashError, VerificationError
-from sqlalchemy import delete, func, select, update
+from sqlalchemy import and_, delete, func, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -124,11 +124,15 @@ def authenticate(
 ) -> User:
     """The account for ``username``/``password``, with brute-force throttling.
 
+    Failures are counted per account *and client address* (``login_max_failures``), per
+    address (``login_max_failures_per_ip``) and per account from all addresses
+    (``login_max_failures_per_account``, a higher cap against distributed guessing), so
+    that one stranger cannot lock an account's owner out by failing a few logins.
     Every attempt is recorded (and committed) *before* it is counted and the password
-    checked, and a successful login deletes the account's records; so of any number of
-    concurrent guesses at most ``login_max_failures`` per account name (and
-    ``login_max_failures_per_ip`` per client address) within ``login_window_s`` get
-    their password checked; the rest get :class:`ThrottledError` with a retry time.
+    checked: of any number of concurrent guesses at most the limits get their password
+    checked; the rest get :class:`ThrottledError` with a retry time. A throttled attempt's
+    record is then dropped (it checked nothing), so hammering on does not prolong the
+    lock past that time; a successful login deletes the account's records.
     """
     name = normalise_username(username)[:64]
     address = address[:64]
@@ -136,10 +140,18 @@ def authenticate(
     since = now - timedelta(seconds=settings.login_window_s)
     with write_transaction(factory) as session:
         session.execute(delete(LoginFailure).where(LoginFailure.at < since))
-        session.add(LoginFailure(username=name, address=address, at=now))
-    with factory() as session:
-        _check_throttle(session, settings, name, address, since)
-        user = session.scalars(select(User).where(User.username == name)).one_or_none()
+        attempt = LoginFailure(username=name, address=address, at=now)
+        session.add(attempt)
+        session.flush()
+        attempt_id = attempt.id
+    try:
+        with factory() as session:
+            _check_throttle(session, settings, name, address, since)
+            user = session.scalars(select(User).where(User.username == name)).one_or_none()
+    except ThrottledError:
+        with write_transaction(factory) as session:
+            session.execute(delete(LoginFailure).where(LoginFailure.id == attempt_id))
+        raise
     valid = verify_password(user.password_hash if user else _DUMMY_HASH, password)
     if valid and user is not None:
         with write_transaction(factory) as session:
@@ -153,8 +165,13 @@ def _check_throttle(
     session: Session, settings: Settings, name: str, address: str, since: datetime
 ) -> None:
     checks = (
-        (LoginFailure.username == name, settings.login_max_failures, "this account"),
+        (
+            and_(LoginFailure.username == name, LoginFailure.address == address),
+            settings.login_max_failures,
+            "this account from your address",
+        ),
         (LoginFailure.address == address, settings.login_max_failures_per_ip, "your address"),
+        (LoginFailure.username == name, settings.login_max_failures_per_account, "this account"),
     )
     for condition, limit, who in checks:
         # Counts this attempt too, hence ``>``: ``limit`` failures allowed per window.
@@ -239,6 +256,17 @@ def revoke_token(factory: sessionmaker[Session], user_id: int, token_id: int) ->
         if token is None or token.user_id != user_id or token.revoked_at is not None:
             raise NotFoundError(f"token {token_id}: no such active token on your account")
         token.revoked_at = utc_now()
+
+
+def end_sessions(factory: sessionmaker[Session], user_id: int) -> None:
+    """Invalidate every session cookie of the account (logout)."""
+    with write_transaction(factory) as session:
+        session.execute(
+            update(User)
+            .where(User.id == user_id)
+            .values(session_epoch=User.session_epoch + 1)
+            .execution_options(synchronize_session=False)
+        )
 
 
 def get_user(factory: sessionmaker[Session], user_id: int) -> User | None:

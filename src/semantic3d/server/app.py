@@ -9,7 +9,7 @@ from typing import Any
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse, Response
+from fastapi.responses import JSONResponse, PlainTextResponse, Response
 from fastapi.staticfiles import StaticFiles
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.middleware.sessions import SessionMiddleware
@@ -40,6 +40,21 @@ _SECURITY_HEADERS = [
 ]
 
 
+API_DOCS_PATH = "/api/docs"
+# FastAPI's Swagger page loads its script and style from jsDelivr and starts them with an
+# inline script; it shows no user content, so only it gets a policy that allows both.
+_API_DOCS_HEADERS = [
+    *_SECURITY_HEADERS[:-1],
+    (
+        b"content-security-policy",
+        b"default-src 'self'; img-src 'self' data: https://fastapi.tiangolo.com; "
+        b"style-src 'self' 'unsafe-inline' https://cdn.jsdelivr.net; "
+        b"script-src 'self' 'unsafe-inline' https://cdn.jsdelivr.net; "
+        b"frame-ancestors 'none'; form-action 'self'",
+    ),
+]
+
+
 class SecurityHeadersMiddleware:
     """Adds conservative security headers to every response (plain ASGI: no overhead)."""
 
@@ -50,13 +65,75 @@ class SecurityHeadersMiddleware:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
+        extra = _API_DOCS_HEADERS if scope["path"] == API_DOCS_PATH else _SECURITY_HEADERS
 
         async def send_with_headers(message: Message) -> None:
             if message["type"] == "http.response.start":
-                message["headers"] = list(message.get("headers", [])) + _SECURITY_HEADERS
+                message["headers"] = list(message.get("headers", [])) + extra
             await send(message)
 
         await self.app(scope, receive, send_with_headers)
+
+
+# Bodies other than upload chunks (forms, JSON method cards) are read into memory by the
+# framework, so they get a small cap; upload chunks stream to disk under their own caps.
+MAX_BODY_BYTES = 1 << 20
+
+
+def _streams_to_disk(scope: Scope) -> bool:
+    return scope["method"] == "PUT" and str(scope["path"]).startswith("/api/uploads/")
+
+
+class BodyLimitMiddleware:
+    """Refuses request bodies over :data:`MAX_BODY_BYTES` (413) without reading them whole.
+
+    A declared ``Content-Length`` over the cap is refused before any byte is read; a body
+    without one (chunked, e.g. through a proxy that streams) is counted as it arrives and
+    refused at the first byte over the cap.
+    """
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if (
+            scope["type"] != "http"
+            or scope["method"] in ("GET", "HEAD", "OPTIONS")
+            or _streams_to_disk(scope)
+        ):
+            await self.app(scope, receive, send)
+            return
+        declared = dict(scope.get("headers") or []).get(b"content-length")
+        if declared is not None and declared.isdigit() and int(declared) > MAX_BODY_BYTES:
+            message = _body_too_large(int(declared))
+            response: Response
+            if str(scope["path"]).startswith("/api/"):
+                response = JSONResponse({"error": message}, status_code=413)
+            else:
+                response = PlainTextResponse(message, status_code=413)
+            await response(scope, receive, send)
+            return
+        received = 0
+
+        async def counting_receive() -> Message:
+            nonlocal received
+            message = await receive()
+            if message["type"] == "http.request":
+                received += len(message.get("body", b""))
+                if received > MAX_BODY_BYTES:
+                    # FastAPI passes an HTTPException raised while reading the body through
+                    # to the app's handlers (JSON under /api/, an error page elsewhere).
+                    raise StarletteHTTPException(413, _body_too_large(received, more=True))
+            return message
+
+        await self.app(scope, counting_receive, send)
+
+
+def _body_too_large(n_bytes: int, *, more: bool = False) -> str:
+    return (
+        f"request body of {n_bytes}{'+' if more else ''} bytes: at most {MAX_BODY_BYTES} "
+        "bytes here (submissions go through /api/uploads)"
+    )
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
@@ -98,7 +175,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         title=settings.site_title,
         version=__version__,
         lifespan=lifespan,
-        docs_url="/api/docs",
+        docs_url=API_DOCS_PATH,
         redoc_url=None,
         openapi_url="/api/openapi.json",
     )
@@ -111,6 +188,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         same_site="lax",
         https_only=settings.cookie_secure,
     )
+    app.add_middleware(BodyLimitMiddleware)
     app.add_middleware(SecurityHeadersMiddleware)
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
     for router in (challenges, accounts, uploads, submissions, admin):

@@ -77,6 +77,9 @@ class User(Base):
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utc_now)
     # Bumped under a row lock by every quota-checked action: serialises them per account.
     quota_epoch: Mapped[int] = mapped_column(Integer, default=0)
+    # Part of every session cookie's check; bumped at logout, ending the account's sessions
+    # (a signed cookie copied before the logout is refused from then on).
+    session_epoch: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
 
 
 class ApiToken(Base):

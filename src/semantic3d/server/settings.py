@@ -72,8 +72,15 @@ class Settings(BaseSettings):
     job_max_attempts: int = Field(default=3, ge=1)
     worker_poll_s: float = Field(default=2.0, gt=0)
 
-    login_max_failures: int = Field(default=5, ge=1, description="Failed logins per account.")
-    login_max_failures_per_ip: int = Field(default=30, ge=1)
+    login_max_failures: int = Field(
+        default=5, ge=1, description="Failed logins per account from one client address."
+    )
+    login_max_failures_per_ip: int = Field(
+        default=30, ge=1, description="Failed logins per client address, all accounts."
+    )
+    login_max_failures_per_account: int = Field(
+        default=100, ge=1, description="Failed logins per account, all addresses."
+    )
     login_window_s: int = Field(default=15 * 60, gt=0)
 
     leaderboard_cache_s: float = Field(default=2.0, ge=0)

@@ -23,7 +23,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from semantic3d.core.errors import SubmissionError
 from semantic3d.evaluation import EvaluationResult, MethodInfo, validate_submission
-from semantic3d.server.challenges import ChallengeCache
+from semantic3d.server.challenges import ChallengeCache, get_challenge
 from semantic3d.server.db import lock_user, write_transaction
 from semantic3d.server.errors import (
     InvalidInputError,
@@ -91,23 +91,57 @@ def check_quota(
             "per account; submit again when it has finished",
             retry_after_s=60,
         )
+    next_allowed = next_submission_at(session, settings, user_id=user_id, challenge_id=challenge_id)
+    if next_allowed is not None and next_allowed > now:
+        raise ThrottledError(
+            _cooldown_message(settings, next_allowed),
+            retry_after_s=int((next_allowed - now).total_seconds()) + 1,
+        )
+
+
+def next_submission_at(
+    session: Session, settings: Settings, *, user_id: int, challenge_id: int
+) -> datetime | None:
+    """When the cooldown lets the account submit to the challenge again (``None``: no limit)."""
     if settings.submission_cooldown_h <= 0:
-        return
+        return None
     last = session.scalar(
         select(func.max(Submission.created_at)).where(
             Submission.user_id == user_id, Submission.challenge_id == challenge_id
         )
     )
-    if last is None:
+    return None if last is None else last + timedelta(hours=settings.submission_cooldown_h)
+
+
+def _cooldown_message(settings: Settings, next_allowed: datetime) -> str:
+    return (
+        f"one submission per challenge every {settings.submission_cooldown_h:g} h "
+        f"(failed ones count): your next one is allowed at {next_allowed:%Y-%m-%d %H:%M} UTC"
+    )
+
+
+def check_upload_allowed(
+    factory: sessionmaker[Session], settings: Settings, *, user_id: int, challenge: str
+) -> None:
+    """Refuse, before any byte is sent, an upload that could never be finalized.
+
+    An upload session lives ``upload_session_ttl_s``; if the account's cooldown on the
+    challenge ends later than that, the upload would expire first. (One in flight is not
+    checked here: that evaluation may well finish while the upload runs.)
+    """
+    now = utc_now()
+    with factory() as session:
+        row = get_challenge(session, challenge)
+        next_allowed = next_submission_at(session, settings, user_id=user_id, challenge_id=row.id)
+    if next_allowed is None:
         return
-    next_allowed = last + timedelta(hours=settings.submission_cooldown_h)
-    if next_allowed > now:
-        wait_s = int((next_allowed - now).total_seconds()) + 1
+    start_from = next_allowed - timedelta(seconds=settings.upload_session_ttl_s)
+    if start_from > now:
         raise ThrottledError(
-            f"one submission per challenge every {settings.submission_cooldown_h:g} h "
-            f"(failed ones count): your next one is allowed at "
-            f"{next_allowed:%Y-%m-%d %H:%M} UTC",
-            retry_after_s=wait_s,
+            _cooldown_message(settings, next_allowed)
+            + f"; an upload started now would expire before then, start it after "
+            f"{start_from:%Y-%m-%d %H:%M} UTC",
+            retry_after_s=int((start_from - now).total_seconds()) + 1,
         )
 
 
@@ -125,6 +159,11 @@ def finalize_upload(
     with factory() as session:
         upload = owned_upload(session, upload_id, user_id)
         challenge_row = upload.challenge
+        if not challenge_row.is_open:
+            raise InvalidInputError(
+                f"challenge {challenge_row.name!r} was closed to new submissions while "
+                "you were uploading; nothing was queued"
+            )
         check_quota(
             session, settings, user_id=user_id, challenge_id=challenge_row.id, now=utc_now()
         )

@@ -32,7 +32,7 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session, sessionmaker
 
 from semantic3d.server.challenges import get_challenge
-from semantic3d.server.db import write_transaction
+from semantic3d.server.db import lock_user, write_transaction
 from semantic3d.server.errors import ConflictError, InvalidInputError, NotFoundError, TooLargeError
 from semantic3d.server.models import UploadSession, utc_now
 from semantic3d.server.settings import Settings
@@ -145,6 +145,7 @@ def create_upload(
             ).first()
             if existing is not None:
                 return _state(settings, existing, challenge)
+        lock_user(session, user_id)  # PostgreSQL: concurrent creates count one at a time
         n_open = session.scalar(
             select(func.count())
             .select_from(UploadSession)

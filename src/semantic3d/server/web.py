@@ -22,7 +22,7 @@ from sqlalchemy import Engine
 from sqlalchemy.orm import Session, sessionmaker
 
 from semantic3d.core.classes import CLASSES
-from semantic3d.server.accounts import get_user, user_for_token
+from semantic3d.server.accounts import end_sessions, get_user, user_for_token
 from semantic3d.server.challenges import ChallengeCache
 from semantic3d.server.errors import AuthenticationError, ForbiddenError
 from semantic3d.server.leaderboard import LeaderboardCache
@@ -123,8 +123,9 @@ def optional_user(request: Request) -> User | None:
 
 
 def _epoch(user: User) -> str:
-    """Changes when the password does (ending every session) without revealing the hash."""
-    return hashlib.sha256(user.password_hash.encode()).hexdigest()[:16]
+    """Changes when the password changes or the account logs out; reveals no hash."""
+    material = f"{user.session_epoch}:{user.password_hash}"
+    return hashlib.sha256(material.encode()).hexdigest()[:16]
 
 
 def log_in(request: Request, user: User) -> None:
@@ -133,6 +134,14 @@ def log_in(request: Request, user: User) -> None:
     request.session["user_id"] = user.id
     request.session["epoch"] = _epoch(user)
     csrf_token(request)
+
+
+def log_out(request: Request) -> None:
+    """End the session, and every other session of its account (copied cookies included)."""
+    user_id = request.session.get("user_id")
+    request.session.clear()
+    if isinstance(user_id, int):
+        end_sessions(state_of(request).factory, user_id)
 
 
 def build_templates(settings: Settings) -> Jinja2Templates:

@@ -20,6 +20,7 @@ from semantic3d.server.web import (
     check_csrf,
     client_address,
     log_in,
+    log_out,
     render,
     session_user,
     state_of,
@@ -111,7 +112,7 @@ def login(
 @router.post("/logout", include_in_schema=False)
 def logout(request: Request, csrf_token: str = Form("")) -> Response:
     check_csrf(request, csrf_token)
-    request.session.clear()
+    log_out(request)
     return RedirectResponse("/", status_code=303)
 
 

@@ -17,7 +17,11 @@ from starlette.requests import ClientDisconnect
 from semantic3d.evaluation import MethodInfo
 from semantic3d.server.errors import InvalidInputError
 from semantic3d.server.models import Submission
-from semantic3d.server.submissions import finalize_upload, submission_dict
+from semantic3d.server.submissions import (
+    check_upload_allowed,
+    finalize_upload,
+    submission_dict,
+)
 from semantic3d.server.uploads import create_upload, delete_upload, get_upload, write_chunk
 from semantic3d.server.web import api_user, state_of
 
@@ -65,6 +69,7 @@ def open_upload(request: Request, body: UploadRequest) -> dict[str, Any]:
     """Open (or, same challenge/size/sha256, resume) an upload session."""
     user = api_user(request)
     state = state_of(request)
+    check_upload_allowed(state.factory, state.settings, user_id=user.id, challenge=body.challenge)
     upload = create_upload(
         state.factory,
         state.settings,
