@@ -13,6 +13,7 @@ from semantic3d.core import PointCloud
 from semantic3d.core.errors import ShapeError
 from semantic3d.features import ConfigError, FeatureConfig, compute_multiscale_features
 from semantic3d.features.attributes import compute_attribute_features
+from semantic3d.features.multiscale import distinct_voxels
 from semantic3d.features.names import GEOMETRIC_FEATURES, parse_column_name
 from semantic3d.features.scan import iter_scan_features
 from semantic3d.features.tiling import TiledScan
@@ -160,3 +161,13 @@ def test_empty_cloud_and_bad_indices_are_rejected(scene: PointCloud) -> None:
 
 def _fields(config: FeatureConfig) -> dict:
     return {name: getattr(config, name) for name in config.__dataclass_fields__}
+
+
+@pytest.mark.parametrize("size", [0, 1, 500])
+def test_distinct_voxels_equals_numpy_unique(size: int) -> None:
+    voxel_of_row = np.random.default_rng(size).integers(0, 300, size)
+    needed, inverse = distinct_voxels(voxel_of_row)
+    expected, expected_inverse = np.unique(voxel_of_row, return_inverse=True)
+    np.testing.assert_array_equal(needed, expected)
+    np.testing.assert_array_equal(inverse, expected_inverse)
+    assert needed.dtype == inverse.dtype == np.int64

@@ -39,6 +39,23 @@ def test_ties_are_broken_by_key_whatever_the_point_order() -> None:
     assert np.all(np.diff(d, axis=1) >= -1e-6)
 
 
+@pytest.mark.parametrize("k", [1, 4, 10, 30])
+def test_cut_off_ties_resolve_to_the_brute_force_canonical_order(k: int) -> None:
+    # an integer lattice (float32 distances exact) with duplicated points: most queries
+    # have a tie at the k-th distance that runs past the k + 1 returned neighbours
+    rng = np.random.default_rng(k)
+    grid = np.stack(np.meshgrid(*(np.arange(9),) * 3, indexing="ij"), -1).reshape(-1, 3)
+    xyz = np.vstack([grid, grid[::5]]).astype(np.float64)
+    keys = rng.permutation(len(xyz)).astype(np.int64)
+    queries = np.vstack([grid[rng.choice(len(grid), 60)], [[20.0, 4, 4], [4, 4, 4.5]]])
+    found = LevelIndex(xyz, keys).query(queries, k=k)
+    squared = ((xyz[None] - queries[:, None]) ** 2).sum(axis=2)
+    expected = np.array([np.lexsort((keys, row))[:k] for row in squared])
+    np.testing.assert_array_equal(found.indices, expected)
+    kth = np.sqrt(np.take_along_axis(squared, expected[:, -1:], axis=1)[:, 0])
+    np.testing.assert_allclose(found.kth_distance, kth)
+
+
 def test_fewer_points_than_k_returns_all_points() -> None:
     xyz = np.array([[0.0, 0, 0], [1, 0, 0], [0, 2, 0]])
     found = LevelIndex(xyz, np.arange(3, dtype=np.int64)).query(np.zeros((2, 3)), k=10)

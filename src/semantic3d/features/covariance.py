@@ -272,83 +272,121 @@ def covariance_kernel(
     out: NDArray[np.float32],
 ) -> None:  # pragma: no cover - compiled
     """Write the 13 columns of every query into ``out`` (unchecked inputs; see above)."""
-    m, k = neighbours.shape
-    for row in numba.prange(m):
-        qx = queries[row, 0]
-        qy = queries[row, 1]
-        qz = queries[row, 2]
-        # Offsets from the query keep the sums small and exact enough in float64.
-        mx = 0.0
-        my = 0.0
-        mz = 0.0
+    for row in numba.prange(neighbours.shape[0]):
+        _covariance_row(points, neighbours, queries, row, out)
+
+
+# Hand-written: the covariance, moment and height columns of a level in one parallel pass
+# over the neighbour indices (one kernel launch and one read of the neighbours per level
+# instead of two); values are those of ``covariance_kernel`` and ``height_kernel``.
+@numba.njit(cache=True, nogil=True, parallel=True)
+def geometry_kernel(
+    points: NDArray[np.float64],
+    neighbours: NDArray[np.integer],
+    queries: NDArray[np.float64],
+    out: NDArray[np.float32],
+) -> None:  # pragma: no cover - compiled
+    """Write the 13 covariance/moment columns then the 3 height columns into ``out``."""
+    k = neighbours.shape[1]
+    for row in numba.prange(neighbours.shape[0]):
+        _covariance_row(points, neighbours, queries, row, out)
+        low = np.inf
+        high = -np.inf
         for j in range(k):
-            idx = neighbours[row, j]
-            mx += points[idx, 0] - qx
-            my += points[idx, 1] - qy
-            mz += points[idx, 2] - qz
-        mx /= k
-        my /= k
-        mz /= k
-        a = np.zeros((3, 3), np.float64)
-        for j in range(k):
-            idx = neighbours[row, j]
-            dx = points[idx, 0] - qx - mx
-            dy = points[idx, 1] - qy - my
-            dz = points[idx, 2] - qz - mz
-            a[0, 0] += dx * dx
-            a[0, 1] += dx * dy
-            a[0, 2] += dx * dz
-            a[1, 1] += dy * dy
-            a[1, 2] += dy * dz
-            a[2, 2] += dz * dz
-        for i in range(3):
-            for j in range(i, 3):
-                a[i, j] /= k
-                a[j, i] = a[i, j]
-        v = np.empty((3, 3), np.float64)
-        w = np.empty(3, np.float64)
-        i0, i1, i2 = _sorted_eigen(a, v, w)
-        total = w[0] + w[1] + w[2]
-        if total <= DEGENERATE_SUM_M2:
-            for c in range(N_COVARIANCE_COLUMNS):
-                out[row, c] = 0.0
-            continue
-        l1 = w[0]
-        e1 = w[0] / total
-        e2 = w[1] / total
-        e3 = w[2] / total
-        entropy = 0.0
-        if e1 > 0.0:
-            entropy -= e1 * math.log(e1)
-        if e2 > 0.0:
-            entropy -= e2 * math.log(e2)
-        if e3 > 0.0:
-            entropy -= e3 * math.log(e3)
-        out[row, 0] = total
-        out[row, 1] = (e1 * e2 * e3) ** (1.0 / 3.0)
-        out[row, 2] = entropy
-        out[row, 3] = (w[0] - w[2]) / l1
-        out[row, 4] = (w[1] - w[2]) / l1
-        out[row, 5] = (w[0] - w[1]) / l1
-        out[row, 6] = w[2] / total
-        out[row, 7] = w[2] / l1
-        out[row, 8] = 1.0 - abs(v[2, i2])
-        first1 = 0.0
-        first2 = 0.0
-        second1 = 0.0
-        second2 = 0.0
-        for j in range(k):
-            idx = neighbours[row, j]
-            dx = points[idx, 0] - qx
-            dy = points[idx, 1] - qy
-            dz = points[idx, 2] - qz
-            p1 = dx * v[0, i0] + dy * v[1, i0] + dz * v[2, i0]
-            p2 = dx * v[0, i1] + dy * v[1, i1] + dz * v[2, i1]
-            first1 += p1
-            first2 += p2
-            second1 += p1 * p1
-            second2 += p2 * p2
-        out[row, 9] = abs(first1)
-        out[row, 10] = abs(first2)
-        out[row, 11] = second1
-        out[row, 12] = second2
+            z = points[neighbours[row, j], 2]
+            low = min(low, z)
+            high = max(high, z)
+        z = queries[row, 2]
+        out[row, N_COVARIANCE_COLUMNS] = high - low
+        out[row, N_COVARIANCE_COLUMNS + 1] = z - low
+        out[row, N_COVARIANCE_COLUMNS + 2] = high - z
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _covariance_row(
+    points: NDArray[np.float64],
+    neighbours: NDArray[np.integer],
+    queries: NDArray[np.float64],
+    row: int,
+    out: NDArray[np.float32],
+) -> None:  # pragma: no cover - compiled
+    """The 13 columns of query ``row`` into ``out[row, :13]``."""
+    k = neighbours.shape[1]
+    qx = queries[row, 0]
+    qy = queries[row, 1]
+    qz = queries[row, 2]
+    # Offsets from the query keep the sums small and exact enough in float64.
+    mx = 0.0
+    my = 0.0
+    mz = 0.0
+    for j in range(k):
+        idx = neighbours[row, j]
+        mx += points[idx, 0] - qx
+        my += points[idx, 1] - qy
+        mz += points[idx, 2] - qz
+    mx /= k
+    my /= k
+    mz /= k
+    a = np.zeros((3, 3), np.float64)
+    for j in range(k):
+        idx = neighbours[row, j]
+        dx = points[idx, 0] - qx - mx
+        dy = points[idx, 1] - qy - my
+        dz = points[idx, 2] - qz - mz
+        a[0, 0] += dx * dx
+        a[0, 1] += dx * dy
+        a[0, 2] += dx * dz
+        a[1, 1] += dy * dy
+        a[1, 2] += dy * dz
+        a[2, 2] += dz * dz
+    for i in range(3):
+        for j in range(i, 3):
+            a[i, j] /= k
+            a[j, i] = a[i, j]
+    v = np.empty((3, 3), np.float64)
+    w = np.empty(3, np.float64)
+    i0, i1, i2 = _sorted_eigen(a, v, w)
+    total = w[0] + w[1] + w[2]
+    if total <= DEGENERATE_SUM_M2:
+        for c in range(N_COVARIANCE_COLUMNS):
+            out[row, c] = 0.0
+        return
+    l1 = w[0]
+    e1 = w[0] / total
+    e2 = w[1] / total
+    e3 = w[2] / total
+    entropy = 0.0
+    if e1 > 0.0:
+        entropy -= e1 * math.log(e1)
+    if e2 > 0.0:
+        entropy -= e2 * math.log(e2)
+    if e3 > 0.0:
+        entropy -= e3 * math.log(e3)
+    out[row, 0] = total
+    out[row, 1] = (e1 * e2 * e3) ** (1.0 / 3.0)
+    out[row, 2] = entropy
+    out[row, 3] = (w[0] - w[2]) / l1
+    out[row, 4] = (w[1] - w[2]) / l1
+    out[row, 5] = (w[0] - w[1]) / l1
+    out[row, 6] = w[2] / total
+    out[row, 7] = w[2] / l1
+    out[row, 8] = 1.0 - abs(v[2, i2])
+    first1 = 0.0
+    first2 = 0.0
+    second1 = 0.0
+    second2 = 0.0
+    for j in range(k):
+        idx = neighbours[row, j]
+        dx = points[idx, 0] - qx
+        dy = points[idx, 1] - qy
+        dz = points[idx, 2] - qz
+        p1 = dx * v[0, i0] + dy * v[1, i0] + dz * v[2, i0]
+        p2 = dx * v[0, i1] + dy * v[1, i1] + dz * v[2, i1]
+        first1 += p1
+        first2 += p2
+        second1 += p1 * p1
+        second2 += p2 * p2
+    out[row, 9] = abs(first1)
+    out[row, 10] = abs(first2)
+    out[row, 11] = second1
+    out[row, 12] = second2

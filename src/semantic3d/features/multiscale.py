@@ -20,8 +20,8 @@ from semantic3d.core.errors import ShapeError
 from semantic3d.core.pointcloud import PointCloud
 from semantic3d.features.attributes import compute_attribute_features
 from semantic3d.features.config import FeatureConfig
-from semantic3d.features.covariance import N_COVARIANCE_COLUMNS, covariance_kernel
-from semantic3d.features.height import N_HEIGHT_COLUMNS, height_kernel
+from semantic3d.features.covariance import N_COVARIANCE_COLUMNS, geometry_kernel
+from semantic3d.features.height import N_HEIGHT_COLUMNS
 from semantic3d.features.neighbourhoods import LevelIndex
 from semantic3d.features.pyramid import PyramidLevel, VoxelPyramid, build_pyramid, grid_origin
 
@@ -113,8 +113,7 @@ def compute_level_features(
         raise ShapeError(f"out: expected ({queries.shape[0]}, {width}), found {out.shape}")
     found = index.query(queries, k=config.k_neighbours)
     split = N_COVARIANCE_COLUMNS + N_HEIGHT_COLUMNS
-    covariance_kernel(index.xyz, found.indices, queries, out[:, :N_COVARIANCE_COLUMNS])
-    height_kernel(index.xyz, found.indices, queries, out[:, N_COVARIANCE_COLUMNS:split])
+    geometry_kernel(index.xyz, found.indices, queries, out[:, :split])
     if config.colour or config.intensity:
         out[:, split:] = compute_attribute_features(
             attributes, found.indices, colour=config.colour, intensity=config.intensity
@@ -157,7 +156,7 @@ def compute_multiscale_features(
         point_row = np.arange(wanted.size, dtype=np.int64)
         return FeatureTable(config.feature_names, values, point_row)
 
-    voxels, point_row = np.unique(pyramid.point_voxel[wanted], return_inverse=True)
+    voxels, point_row = distinct_voxels(pyramid.point_voxel[wanted])
     values = np.empty((voxels.size, config.n_features), np.float32)
     ancestor = voxels
     for level_number, level in enumerate(pyramid.levels):
@@ -171,14 +170,15 @@ def compute_multiscale_features(
             index: LevelIndex = index,
             level: PyramidLevel = level,
         ) -> None:
-            compute_level_features(
-                index, level.attributes, level.xyz[needed], config=config, out=out
-            )
+            # every voxel of the level (the usual case): query the level's own array,
+            # whose float32 copy the index already holds
+            queries = level.xyz if needed.size == level.n_voxels else level.xyz[needed]
+            compute_level_features(index, level.attributes, queries, config=config, out=out)
 
         fill_level_columns(
             values[:, level_number * width : (level_number + 1) * width], ancestor, compute
         )
-    return FeatureTable(config.feature_names, values, point_row.astype(np.int64))
+    return FeatureTable(config.feature_names, values, point_row)
 
 
 def fill_level_columns(
@@ -191,14 +191,28 @@ def fill_level_columns(
     ``compute(voxels, out)`` fills ``out`` with the features of distinct, sorted ``voxels``;
     it runs once per voxel, and its rows are copied to every row of that voxel.
     """
-    needed, inverse = np.unique(voxel_of_row, return_inverse=True)
+    needed, inverse = distinct_voxels(voxel_of_row)
     if needed.size == voxel_of_row.size and np.array_equal(needed, voxel_of_row):
         # one row per voxel, in voxel order (level 0 in voxel mode): fill in place
         compute(needed, columns)
         return
     block = np.empty((needed.size, columns.shape[1]), np.float32)
     compute(needed, block)
-    _scatter_rows(block, inverse.astype(np.int64), columns)
+    _scatter_rows(block, inverse, columns)
+
+
+def distinct_voxels(
+    voxel_of_row: NDArray[np.int64],
+) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """``np.unique(voxel_of_row, return_inverse=True)`` for non-negative voxel indices,
+    by marking a table as large as the largest index instead of sorting (linear time)."""
+    if voxel_of_row.size == 0:
+        return np.empty(0, np.int64), np.empty(0, np.int64)
+    present = np.zeros(int(voxel_of_row.max()) + 1, np.bool_)
+    present[voxel_of_row] = True
+    needed = np.flatnonzero(present)
+    rank = np.cumsum(present, dtype=np.int64) - 1
+    return needed.astype(np.int64, copy=False), rank[voxel_of_row]
 
 
 # Hand-written: ``columns[:] = block[inverse]`` makes an (n_rows, width) temporary and a

@@ -17,6 +17,7 @@ not of the tree's layout: a tile plus a wide enough halo yields exactly the neig
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -74,7 +75,8 @@ class LevelIndex:
         if self.n_points == 0:
             raise ShapeError("k-NN query on an empty point set")
         k_eff = min(k, self.n_points)
-        queries32 = queries.astype(np.float32)
+        # the level's own points as queries (voxel mode): reuse their float32 copy
+        queries32 = self._xyz32 if queries is self.xyz else queries.astype(np.float32)
         k_query = min(k_eff + 1, self.n_points)
         found, squared = self._pgeof.knn_search(self._xyz32, queries32, k_query)
         found = found.reshape(-1, k_query)
@@ -84,17 +86,116 @@ class LevelIndex:
         )
         indices = found[:, :k_eff]
         kth = np.sqrt(squared[:, k_eff - 1].astype(np.float64))
-        while pending.size:  # ties reaching past the returned neighbours: ask for more
-            k_query = min(2 * k_query, self.n_points)
-            more, more_squared = self._pgeof.knn_search(self._xyz32, queries32[pending], k_query)
+        if pending.size:  # ties reaching past the returned neighbours: ask for more
+            self._resolve_ties(
+                queries32[pending],
+                pending,
+                squared[pending, k_eff - 1],
+                k_eff,
+                k_query,
+                indices,
+                kth,
+            )
+        return Neighbours(indices=indices, kth_distance=kth)
+
+    def _resolve_ties(
+        self,
+        queries32: NDArray[np.float32],
+        rows: NDArray[np.intp],
+        squared_kth: NDArray[np.float32],
+        k_eff: int,
+        k_query: int,
+        indices: NDArray[np.uint32],
+        kth: NDArray[np.float64],
+    ) -> None:
+        """Canonical neighbours of ``rows`` whose tie at the k-th distance was cut off.
+
+        Asked again with twice the neighbours, among only the indexed points inside a box
+        holding each row's ball of its k-th distance: a complete superset of the points
+        that can be selected, with the same float32 coordinates (so the same distances),
+        and a k-d tree over a few hundred points instead of the whole level (pgeof
+        rebuilds its tree on every call; the rebuild was most of the re-query's cost).
+        """
+        # float32 distances carry ~1e-7 relative error: the 1e-4 margin keeps the box a
+        # superset of the ball; a zero k-th distance keeps a positive half-width
+        radii = np.sqrt(squared_kth.astype(np.float64)) * (1.0 + 1e-4) + 1e-30
+        subset = np.flatnonzero(_points_in_boxes(self._xyz32, queries32, radii))
+        points = self._xyz32[subset]
+        keys = self.keys[subset]
+        while rows.size:
+            k_query = min(2 * k_query, subset.size)
+            more, more_squared = self._pgeof.knn_search(points, queries32, k_query)
             more = more.reshape(-1, k_query)
             more_squared = more_squared.reshape(-1, k_query)
-            ambiguous = _canonicalise(more_squared, more, self.keys, k_eff, k_query < self.n_points)
+            ambiguous = _canonicalise(more_squared, more, keys, k_eff, k_query < subset.size)
             done = ~ambiguous
-            indices[pending[done]] = more[done, :k_eff]
-            kth[pending[done]] = np.sqrt(more_squared[done, k_eff - 1].astype(np.float64))
-            pending = pending[ambiguous]
-        return Neighbours(indices=indices, kth_distance=kth)
+            indices[rows[done]] = subset[more[done, :k_eff]]
+            kth[rows[done]] = np.sqrt(more_squared[done, k_eff - 1].astype(np.float64))
+            rows = rows[ambiguous]
+            queries32 = queries32[ambiguous]
+
+
+# Hand-written: marks the points inside any of a few hundred small boxes without testing
+# every point against every box (or building a tree): boxes are hashed to the cells of a
+# grid at least as coarse as the widest box (so a box meets at most 2 cells per axis) and
+# each point tests only the boxes of its own cell.
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _points_in_boxes(
+    points: NDArray[np.float32], centres: NDArray[np.float32], radii: NDArray[np.float64]
+) -> NDArray[np.bool_]:  # pragma: no cover - compiled
+    """``mask[p]``: point p lies in the cube of half-width ``radii[i]`` about some centre i."""
+    n_boxes = centres.shape[0]
+    low = np.full(3, np.inf)
+    high = np.full(3, -np.inf)
+    for i in range(n_boxes):
+        for axis in range(3):
+            low[axis] = min(low[axis], np.float64(centres[i, axis]) - radii[i])
+            high[axis] = max(high[axis], np.float64(centres[i, axis]) + radii[i])
+    extent = max(high[0] - low[0], max(high[1] - low[1], high[2] - low[2]))
+    cell = max(2.0 * radii.max(), extent / 2.0**20)
+    codes = np.empty(27 * n_boxes, np.int64)
+    owner = np.empty(27 * n_boxes, np.int64)
+    count = 0
+    for i in range(n_boxes):
+        first = np.empty(3, np.int64)
+        last = np.empty(3, np.int64)
+        for axis in range(3):
+            centre = np.float64(centres[i, axis])
+            first[axis] = math.floor((centre - radii[i] - low[axis]) / cell)
+            last[axis] = math.floor((centre + radii[i] - low[axis]) / cell)
+        for cx in range(first[0], last[0] + 1):
+            for cy in range(first[1], last[1] + 1):
+                for cz in range(first[2], last[2] + 1):
+                    codes[count] = (cx << 42) | (cy << 21) | cz
+                    owner[count] = i
+                    count += 1
+    order = np.argsort(codes[:count])
+    codes = codes[order]
+    owner = owner[order]
+    mask = np.zeros(points.shape[0], np.bool_)
+    for p in numba.prange(points.shape[0]):
+        x = np.float64(points[p, 0])
+        y = np.float64(points[p, 1])
+        z = np.float64(points[p, 2])
+        if x < low[0] or x > high[0] or y < low[1] or y > high[1] or z < low[2] or z > high[2]:
+            continue
+        code = (
+            (math.floor((x - low[0]) / cell) << 42)
+            | (math.floor((y - low[1]) / cell) << 21)
+            | math.floor((z - low[2]) / cell)
+        )
+        j = np.searchsorted(codes, code)
+        while j < count and codes[j] == code:
+            i = owner[j]
+            if (
+                abs(x - np.float64(centres[i, 0])) <= radii[i]
+                and abs(y - np.float64(centres[i, 1])) <= radii[i]
+                and abs(z - np.float64(centres[i, 2])) <= radii[i]
+            ):
+                mask[p] = True
+                break
+            j += 1
+    return mask
 
 
 # Hand-written: reorders ties inside each row (a few compares per query) without

@@ -41,6 +41,7 @@ from semantic3d.features.multiscale import (
     FeatureTable,
     attribute_columns,
     compute_level_features,
+    distinct_voxels,
     fill_level_columns,
 )
 from semantic3d.features.neighbourhoods import LevelIndex
@@ -302,7 +303,7 @@ class TiledScan:
             return FeatureTable(
                 config.feature_names, values, np.arange(queries.shape[0], dtype=np.int64)
             )
-        voxels, point_row = np.unique(pyramid["voxel"][local], return_inverse=True)
+        voxels, point_row = distinct_voxels(pyramid["voxel"][local])
         values = np.empty((voxels.size, config.n_features), np.float32)
         ancestor = voxels
         for number in range(config.n_levels):
@@ -320,7 +321,7 @@ class TiledScan:
                     out[:] = rows[np.searchsorted(keys, pyramid[f"keys{number}"][needed])]
 
             fill_level_columns(values[:, number * width : (number + 1) * width], ancestor, compute)
-        return FeatureTable(config.feature_names, values, point_row.astype(np.int64))
+        return FeatureTable(config.feature_names, values, point_row)
 
     def _whole_level(self, number: int) -> tuple[NDArray[np.int64], NDArray[np.float32]] | None:
         """Features of every voxel of a small level, computed once over the whole level.
