@@ -29,7 +29,9 @@ covariance_app = typer.Typer(
 )
 baseline_app.add_typer(covariance_app, name="covariance")
 
-_CONFIG_HELP = "TOML configuration ([features] [forest] [sampling] [prediction] [grid_search])."
+_CONFIG_HELP = (
+    "TOML configuration with the sections features, forest, sampling, prediction, grid_search."
+)
 _SCANS_HELP = "Scan names (NAME of NAME.txt) to use, repeatable or comma-separated; default all."
 
 
@@ -54,7 +56,9 @@ def train(
     out: Path = typer.Option(..., "--out", help="Model file to write."),
     scans: list[str] = typer.Option([], "--scans", help=_SCANS_HELP),
     config_path: Path | None = typer.Option(None, "--config", help=_CONFIG_HELP),
-    seed: int | None = typer.Option(None, "--seed", help="Override [sampling] seed."),
+    seed: int | None = typer.Option(
+        None, "--seed", help="Override the seed of the sampling section."
+    ),
 ) -> None:
     """Train on labelled scans (class-balanced sample) and save the model."""
     with guarded():
@@ -113,7 +117,9 @@ def cv(
     data: Path = typer.Option(..., "--data", help="Folder of NAME.txt + NAME.labels scans."),
     scans: list[str] = typer.Option([], "--scans", help=_SCANS_HELP),
     config_path: Path | None = typer.Option(None, "--config", help=_CONFIG_HELP),
-    seed: int | None = typer.Option(None, "--seed", help="Override [sampling] seed."),
+    seed: int | None = typer.Option(
+        None, "--seed", help="Override the seed of the sampling section."
+    ),
     out: Path | None = typer.Option(None, "--out", help="Write the scores as JSON here."),
 ) -> None:
     """Grid search of forest parameters, cross-validated with folds grouped by scan."""
