@@ -100,8 +100,15 @@ def test_bad_input() -> None:
         compute_label_agreement([a], [b.with_labels(labels)])
     with pytest.raises(ValueError, match="max_distance_m: expected a positive distance"):
         compute_label_agreement([a], [b], max_distance_m=0.0)
-    with pytest.raises(ValueError, match="margin_m: expected 0 <= margin < tile size"):
-        compute_label_agreement([a], [b], max_distance_m=2.0, tile_size_m=1.0)
+
+
+def test_distance_wider_than_a_tile_reads_several_rings_of_neighbours() -> None:
+    a, b = overlapping_scans()
+    wide = compute_label_agreement([a], [b], max_distance_m=0.3, tile_size_m=0.2)
+    whole = compute_label_agreement([a], [b], max_distance_m=0.3, tile_size_m=100.0)
+    for tiled, untiled in zip(wide.directions, whole.directions, strict=True):
+        np.testing.assert_array_equal(tiled.confusion, untiled.confusion)
+        assert tiled.n_matched == untiled.n_matched
 
 
 def _reference(

@@ -13,10 +13,10 @@ Points labelled 0 (unlabelled) or 7 (scanning artefacts: moving objects and nois
 one scan only) are removed from both scans before matching. Points without a neighbour
 within ``max_distance_m`` are counted as unmatched and left out of the matrix.
 
-Scans are streamed once into XY tiles with a halo of ``max_distance_m``
-(:class:`~semantic3d.evaluation.tilespill.TileSpill`, spilling to disk past a memory
-budget), so memory is bounded by the largest tile, not the scans. In each tile a voxel
-occupancy grid (:class:`~semantic3d.evaluation.occupancy.OccupancyGrid`) drops the points
+Scans are streamed once into XY tile stores (:class:`~semantic3d.spatial.store.TileStore`,
+spilling to disk past a memory budget) and matched tile by tile with a halo of
+``max_distance_m``, so memory is bounded by the largest tile, not the scans. In each tile a voxel
+occupancy grid (:class:`~semantic3d.spatial.occupancy.OccupancyGrid`) drops the points
 that cannot have a neighbour in the other scan (most of them: scans overlap in part and
 are sparse far from their station), the rest is put in voxel order and matched with
 ``scipy.spatial.cKDTree`` (queries on all cores).
@@ -25,7 +25,7 @@ are sparse far from their station), the rest is put in voxel order and matched w
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -35,10 +35,11 @@ from numpy.typing import NDArray
 from semantic3d.core.classes import N_CLASSES
 from semantic3d.core.errors import ShapeError, require
 from semantic3d.core.pointcloud import PointCloud
-from semantic3d.evaluation.occupancy import OccupancyGrid
-from semantic3d.evaluation.tilespill import CORE, HALO, TileSpill
 from semantic3d.metrics.confusion import ConfusionMatrix
 from semantic3d.metrics.scores import Scores
+from semantic3d.spatial.grid import TileGrid
+from semantic3d.spatial.occupancy import OccupancyGrid
+from semantic3d.spatial.store import TemporaryTileStore, TilePoints
 
 logger = logging.getLogger(__name__)
 
@@ -55,6 +56,7 @@ AgreementProgress = Callable[[int, int], None]
 """``progress(tiles_done, tiles_total)``."""
 
 _A, _B = 0, 1
+_PARALLEL_QUERIES = 20_000  # fewer queries run faster on one thread than start a pool
 _GRID_CELL_M = 0.05  # smallest voxel of a tile's occupancy grid (the distance when larger)
 
 
@@ -98,8 +100,8 @@ class AgreementResult:
         return self.a_to_b, self.b_to_a
 
 
-def _spill_cloud(spill: TileSpill, index: int, chunks: Iterable[PointCloud], name: str) -> int:
-    n_points = 0
+def _kept_chunks(chunks: Iterable[PointCloud], name: str) -> Iterator[PointCloud]:
+    """The chunks less the excluded labels, checked."""
     excluded = np.array(EXCLUDED_VALUES, dtype=np.uint8)
     for chunk in chunks:
         if chunk.labels is None:
@@ -109,10 +111,16 @@ def _spill_cloud(spill: TileSpill, index: int, chunks: Iterable[PointCloud], nam
                 f"scan {name}: expected label values 0..{N_CLASSES}, "
                 f"found {int(chunk.labels.max())}"
             )
-        keep = ~np.isin(chunk.labels, excluded)
-        spill.add(index, chunk.xyz[keep], chunk.labels[keep])
-        n_points += int(keep.sum())
-    return n_points
+        yield chunk[~np.isin(chunk.labels, excluded)]
+
+
+def _rows(points: TilePoints) -> NDArray[np.float64]:
+    """``(n, 4)`` float64 rows ``x y z label`` (contiguous: fast to gather and sort)."""
+    rows = np.empty((points.n_points, 4), dtype=np.float64)
+    rows[:, :3] = points.cloud.xyz
+    if points.cloud.labels is not None:
+        rows[:, 3] = points.cloud.labels
+    return rows
 
 
 def _gather(records: NDArray[np.float64], mask: NDArray[np.bool_]) -> NDArray[np.float64]:
@@ -132,7 +140,7 @@ def _match_tile(
     ``core[c]`` / ``halo[c]`` are the ``x y z label`` rows of scan ``c`` in the tile and
     within ``max_distance_m`` around it. Only points whose voxel touches the other scan's
     occupancy are queried, and only points near the receiving scan go into the tree
-    (:class:`~semantic3d.evaluation.occupancy.OccupancyGrid`); both filters are exact.
+    (:class:`~semantic3d.spatial.occupancy.OccupancyGrid`); both filters are exact.
     """
     from scipy.spatial import cKDTree
 
@@ -166,7 +174,10 @@ def _match_tile(
         # split and queries as fast.
         tree = cKDTree(giving[:, :3], balanced_tree=False, leafsize=32)
         distance, index = tree.query(
-            receiving[:, :3], k=1, distance_upper_bound=max_distance_m, workers=-1
+            receiving[:, :3],
+            k=1,
+            distance_upper_bound=max_distance_m,
+            workers=-1 if receiving.shape[0] >= _PARALLEL_QUERIES else 1,
         )
         hit = np.flatnonzero(np.isfinite(distance))
         own = np.take(receiving[:, 3], hit).astype(np.uint8)
@@ -206,19 +217,22 @@ def compute_label_agreement(
         raise ValueError(f"max_distance_m: expected a positive distance, found {max_distance_m}")
     matrices = {_A: ConfusionMatrix(N_CLASSES), _B: ConfusionMatrix(N_CLASSES)}
     matched = {_A: 0, _B: 0}
-    with TileSpill(
-        tile_size_m=tile_size_m,
-        margin_m=max_distance_m,
-        buffer_points=buffer_points,
-        directory=spill_directory,
-    ) as spill:
-        n_points = {_A: _spill_cloud(spill, _A, a, "A"), _B: _spill_cloud(spill, _B, b, "B")}
-        if spill.spilled_points:
-            logger.info("spilled %d point records to disk", spill.spilled_points)
-        total = spill.n_tiles
-        for done, tile in enumerate(spill.tiles(), start=1):
-            core = [spill.read(scan, CORE, tile) for scan in (_A, _B)]
-            halo = [spill.read(scan, HALO, tile) for scan in (_A, _B)]
+    grid = TileGrid.square(tile_size_m)
+    with (
+        TemporaryTileStore(
+            _kept_chunks(a, "A"), grid=grid, workdir=spill_directory, buffer_points=buffer_points
+        ) as store_a,
+        TemporaryTileStore(
+            _kept_chunks(b, "B"), grid=grid, workdir=spill_directory, buffer_points=buffer_points
+        ) as store_b,
+    ):
+        stores = {_A: store_a, _B: store_b}
+        n_points = {scan: stores[scan].n_points for scan in (_A, _B)}
+        tiles = sorted(set(store_a.tiles) | set(store_b.tiles))
+        total = len(tiles)
+        for done, tile in enumerate(tiles, start=1):
+            core = [_rows(stores[scan].read_core(tile)) for scan in (_A, _B)]
+            halo = [_rows(stores[scan].read_halo(tile, max_distance_m)) for scan in (_A, _B)]
             sizes = [part.shape[0] for part in (*core, *halo)]  # core A, core B, halo A, halo B
             if (sizes[0] and sizes[1] + sizes[3]) or (sizes[1] and sizes[0] + sizes[2]):
                 found = _match_tile(core, halo, max_distance_m=max_distance_m, matrices=matrices)

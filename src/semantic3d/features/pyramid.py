@@ -18,23 +18,32 @@ bit for bit.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
 
 import numba
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from semantic3d.core.errors import Semantic3DError, ShapeError
+from semantic3d.core.errors import ShapeError
+from semantic3d.spatial.voxels import (
+    ExtentError,
+    compute_cells,
+    grid_origin,
+    pack_keys,
+)
 
-CELL_BITS = 21
-CELL_OFFSET = 1 << (CELL_BITS - 1)
-"""Cells are stored with this offset so that packed keys are non-negative."""
-
-MAX_CELL = CELL_OFFSET - 1
-"""Largest absolute cell coordinate at level 0 (±2**20 voxels from the origin)."""
-
-
-class ExtentError(Semantic3DError, ValueError):
-    """Points lie too far from the grid origin for the packed voxel keys."""
+__all__ = [
+    "ExtentError",
+    "PyramidLevel",
+    "VoxelPyramid",
+    "build_pyramid",
+    "compute_cells",
+    "grid_origin",
+    "load_pyramid",
+    "pack_keys",
+    "save_pyramid",
+]
 
 
 @dataclass(frozen=True, slots=True)
@@ -78,6 +87,17 @@ class VoxelPyramid:
     levels: tuple[PyramidLevel, ...]
     point_voxel: NDArray[np.int64]
 
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by the pyramid's arrays."""
+        total = self.origin.nbytes + self.point_voxel.nbytes
+        for level in self.levels:
+            total += sum(
+                array.nbytes
+                for array in (level.cells, level.keys, level.xyz, level.attributes, level.parent)
+            )
+        return total
+
     def ancestors(self, level: int) -> NDArray[np.int64]:
         """For every level-0 voxel, the index of the voxel containing it at ``level``."""
         index = np.arange(self.levels[0].n_voxels, dtype=np.int64)
@@ -86,41 +106,32 @@ class VoxelPyramid:
         return index
 
 
-def grid_origin(first_point: ArrayLike, *, coarsest_voxel_size_m: float) -> NDArray[np.float64]:
-    """The grid anchor for a scan: ``first_point`` snapped down to the coarsest grid.
-
-    Any fixed point works; a scan-dependent one keeps cells small for georeferenced
-    coordinates (x ≈ 870 000). Tiled and whole-scan processing must use the same origin.
-    """
-    point = np.asarray(first_point, dtype=np.float64).reshape(3)
-    if not np.all(np.isfinite(point)):
-        raise ExtentError(f"grid origin: expected finite coordinates, found {point.tolist()}")
-    return np.floor(point / coarsest_voxel_size_m) * coarsest_voxel_size_m
+_LEVEL_ARRAYS = ("cells", "keys", "xyz", "attributes", "parent")
 
 
-def compute_cells(
-    xyz: NDArray[np.float64], *, origin: NDArray[np.float64], voxel_size_m: float
-) -> NDArray[np.int64]:
-    """``(n, 3)`` int64 integer voxel coordinates of points relative to ``origin``.
+def save_pyramid(path: str | Path, pyramid: VoxelPyramid) -> None:
+    """Write ``pyramid`` to one uncompressed ``.npz`` file (see :func:`load_pyramid`)."""
+    arrays: dict[str, NDArray[Any]] = {
+        "origin": pyramid.origin,
+        "point_voxel": pyramid.point_voxel,
+        "voxel_size_m": np.array([level.voxel_size_m for level in pyramid.levels]),
+    }
+    for number, level in enumerate(pyramid.levels):
+        for name in _LEVEL_ARRAYS:
+            arrays[f"level{number}/{name}"] = getattr(level, name)
+    with Path(path).open("wb") as stream:
+        np.savez(stream, **arrays)  # type: ignore[arg-type]
 
-    Raises ``ValueError`` when a point lies more than ±2**20 voxels from the origin (the
-    range packed keys hold), naming the offending extent.
-    """
-    cells = np.floor((xyz - origin) / voxel_size_m)
-    if cells.size and (cells.min() < -MAX_CELL or cells.max() > MAX_CELL):
-        extent = MAX_CELL * voxel_size_m
-        raise ExtentError(
-            f"points reach {np.abs(xyz - origin).max():.1f} m from the grid origin: expected "
-            f"at most {extent:.0f} m (2**20 voxels of {voxel_size_m} m); "
-            "use a larger base voxel size or split the scan"
+
+def load_pyramid(path: str | Path) -> VoxelPyramid:
+    """The pyramid :func:`save_pyramid` wrote to ``path``."""
+    with np.load(path) as stored:
+        sizes = stored["voxel_size_m"]
+        levels = tuple(
+            PyramidLevel(float(size), *(stored[f"level{number}/{name}"] for name in _LEVEL_ARRAYS))
+            for number, size in enumerate(sizes)
         )
-    return cells.astype(np.int64)
-
-
-def pack_keys(cells: NDArray[np.int64]) -> NDArray[np.int64]:
-    """Pack ``(n, 3)`` cells into int64 keys ordered x, then y, then z."""
-    shifted = cells + CELL_OFFSET
-    return (shifted[:, 0] << (2 * CELL_BITS)) | (shifted[:, 1] << CELL_BITS) | shifted[:, 2]
+        return VoxelPyramid(stored["origin"], levels, stored["point_voxel"])
 
 
 def build_pyramid(

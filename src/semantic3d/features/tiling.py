@@ -1,25 +1,27 @@
 """Multi-scale features of scans larger than memory, tile by tile, equal to the whole-scan rows.
 
-:class:`TiledScan` streams point chunks once into square columns ("tiles") on disk, then
-builds each tile's voxel pyramid, then computes features tile by tile. Tiles are aligned to
-the coarsest voxel grid, so every voxel of every level lies in exactly one tile and each
-tile's pyramid holds exactly the whole scan's voxels. At level ``l`` a tile's queries look
-for neighbours among the level-``l`` points of the tile plus a *halo* gathered from its
-neighbours. The halo is per level (fine levels need centimetres, coarse ones metres) and
-adaptive: a query is accepted only when its k-th neighbour is closer than the halo's edge
-(so no point outside could be nearer); the others are asked again in a box holding the
-ball of their k-th distance. In voxel mode the coarsest levels, which hold few voxels, are
-described once over the whole scan instead. With the canonical neighbour order of
-:mod:`~semantic3d.features.neighbourhoods`, rows are bit-for-bit those of
+:class:`TiledScan` streams point chunks once into a tile store
+(:mod:`semantic3d.spatial.store`), then builds each tile's voxel pyramid, then computes
+features tile by tile. Tiles are made of whole voxels of the coarsest level (a
+:class:`~semantic3d.spatial.grid.TileGrid` of base-voxel cells), so every voxel of every
+level lies in exactly one tile and each tile's pyramid holds exactly the whole scan's
+voxels. At level ``l`` a tile's queries look for neighbours among the level-``l`` points
+of the tile plus a *halo* gathered from its neighbours. The halo is per level (fine levels
+need centimetres, coarse ones metres) and adaptive: a query is accepted only when its k-th
+neighbour is closer than the halo's edge (so no point outside could be nearer); the others
+are asked again in a box holding the ball of their k-th distance. The first halo of a
+level is estimated once, from the densest tile, so every tile is computed the same way
+whatever the order tiles are visited in. In voxel mode the coarsest levels, which hold
+few voxels, are described once over the whole scan instead. With the canonical neighbour
+order of :mod:`~semantic3d.features.neighbourhoods`, rows are bit-for-bit those of
 :func:`~semantic3d.features.multiscale.compute_multiscale_features`.
 
 Peak memory is set by the densest tile and its halo, not by the scan size; disk use is
-about 40 bytes per point.
+about 44 bytes per point plus the pyramids.
 """
 
 from __future__ import annotations
 
-import itertools
 import logging
 import math
 import shutil
@@ -27,9 +29,9 @@ import tempfile
 from collections import OrderedDict
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
+from itertools import chain
 from pathlib import Path
 from types import TracebackType
-from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -45,7 +47,15 @@ from semantic3d.features.multiscale import (
     fill_level_columns,
 )
 from semantic3d.features.neighbourhoods import LevelIndex
-from semantic3d.features.pyramid import build_pyramid, compute_cells, grid_origin
+from semantic3d.features.pyramid import (
+    VoxelPyramid,
+    build_pyramid,
+    grid_origin,
+    load_pyramid,
+    save_pyramid,
+)
+from semantic3d.spatial.grid import TileGrid, TileKey
+from semantic3d.spatial.store import TilePoints, TileStore, build_tile_store
 
 logger = logging.getLogger(__name__)
 
@@ -61,7 +71,10 @@ _FIRST_HALO_VOXELS = 4.0
 _SLACK_M = 1e-6
 """Points may sit this far outside their tile's edges (rounding of cell indices)."""
 
-Tile = tuple[int, int]
+_HALO_SAMPLE = 2048
+"""Queries of the densest tile used to estimate a level's first halo."""
+
+Tile = TileKey
 
 
 @dataclass(frozen=True, slots=True)
@@ -120,22 +133,19 @@ class TiledScan:
         if workdir is not None:
             Path(workdir).mkdir(parents=True, exist_ok=True)
         self.workdir = Path(tempfile.mkdtemp(prefix="s3d-tiles-", dir=workdir))
-        self.origin: NDArray[np.float64] | None = None
-        self.n_points = 0
-        self.has_labels: bool | None = None
-        self._counts: dict[Tile, int] = {}
-        self._halo_hint = [0.0] * config.n_levels
+        self.origin: NDArray[np.float64] = np.zeros(3)
         self._level_sizes = [0] * config.n_levels
+        self._first_halo: dict[int, float] = {}
         self._whole: dict[int, tuple[NDArray[np.int64], NDArray[np.float32]] | None] = {}
         self.whole_level_points = whole_level_points
         self.cache_bytes = cache_bytes
-        self._cache: OrderedDict[Tile, dict[str, NDArray[Any]]] = OrderedDict()
-        self._dtype: np.dtype[Any] = np.dtype([])
-        self._tile_low = np.zeros(2)
-        self._tile_high = np.zeros(2)
+        self._cache: OrderedDict[Tile, VoxelPyramid] = OrderedDict()
         self._cache_bytes = 0
         try:
-            self._spill(chunks)
+            self.store = self._spill(chunks)
+            tiles = np.array(self.store.tiles)
+            self._tile_low = tiles.min(axis=0) * self.tile_size_m - _SLACK_M
+            self._tile_high = (tiles.max(axis=0) + 1) * self.tile_size_m + _SLACK_M
             self._build_pyramids()
         except BaseException:
             self.close()
@@ -161,108 +171,74 @@ class TiledScan:
     @property
     def tiles(self) -> tuple[Tile, ...]:
         """Non-empty tiles, sorted."""
-        return tuple(sorted(self._counts))
+        return self.store.tiles
 
-    def tile_points(self, tile: Tile) -> int:
-        """Number of points in ``tile``."""
-        return self._counts.get(tile, 0)
+    @property
+    def n_points(self) -> int:
+        """Points in the scan."""
+        return self.store.n_points
+
+    @property
+    def has_labels(self) -> bool:
+        """Whether the chunks carried labels."""
+        return self.store.has_labels
 
     # -- pass 1: spill ---------------------------------------------------------------------
-    def _path(self, tile: Tile, name: str) -> Path:
-        return self.workdir / f"{tile[0]}_{tile[1]}.{name}"
-
-    def _record_dtype(self, chunk: PointCloud) -> np.dtype[Any]:
-        fields: list[tuple[Any, ...]] = [("xyz", np.float64, (3,)), ("idx", np.int64)]
-        n_attributes = 3 * self.config.colour + self.config.intensity
-        if n_attributes:
-            fields.append(("attr", np.float64, (n_attributes,)))
-        if chunk.labels is not None:
-            fields.append(("lab", np.uint8))
-        return np.dtype(fields)
-
-    def _spill(self, chunks: Iterable[PointCloud]) -> None:
-        config = self.config
-        for chunk in chunks:
-            if chunk.n_points == 0:
-                continue
-            if self.origin is None:
-                self.origin = grid_origin(
-                    chunk.xyz[0], coarsest_voxel_size_m=config.coarsest_voxel_size_m
-                )
-                self.has_labels = chunk.labels is not None
-                self._dtype = self._record_dtype(chunk)
-            if (chunk.labels is not None) != self.has_labels:
-                raise ShapeError("chunks: expected labels on every chunk or on none")
-            cells = compute_cells(
-                chunk.xyz, origin=self.origin, voxel_size_m=config.base_voxel_size_m
-            )
-            tile_xy = cells[:, :2] // self.tile_cells
-            records = np.empty(chunk.n_points, self._dtype)
-            records["xyz"] = chunk.xyz
-            records["idx"] = np.arange(self.n_points, self.n_points + chunk.n_points)
-            attributes = attribute_columns(chunk, config)
-            if attributes is not None:
-                records["attr"] = attributes
-            if chunk.labels is not None:
-                records["lab"] = chunk.labels
-            order = np.lexsort((tile_xy[:, 1], tile_xy[:, 0]))  # stable: file order kept
-            sorted_xy = tile_xy[order]
-            starts = np.flatnonzero(np.any(sorted_xy[1:] != sorted_xy[:-1], axis=1)) + 1
-            bounds = np.concatenate(([0], starts, [order.size]))
-            for begin, end in itertools.pairwise(bounds):
-                tile = (int(sorted_xy[begin, 0]), int(sorted_xy[begin, 1]))
-                with self._path(tile, "pts").open("ab") as stream:
-                    stream.write(records[order[begin:end]].tobytes())
-                self._counts[tile] = self._counts.get(tile, 0) + int(end - begin)
-            self.n_points += chunk.n_points
-        if self.origin is None:
+    def _spill(self, chunks: Iterable[PointCloud]) -> TileStore:
+        """Stream the chunks into a tile store whose tiles are whole coarsest voxels."""
+        stream = iter(chunks)
+        first = next((chunk for chunk in stream if chunk.n_points), None)
+        if first is None:
             raise ShapeError("cannot tile an empty scan")
-        tiles = np.array(self.tiles)
-        self._tile_low = tiles.min(axis=0) * self.tile_size_m - _SLACK_M
-        self._tile_high = (tiles.max(axis=0) + 1) * self.tile_size_m + _SLACK_M
-        logger.info("spilled %d points into %d tiles", self.n_points, len(self._counts))
+        config = self.config
+        self.origin = grid_origin(first.xyz[0], coarsest_voxel_size_m=config.coarsest_voxel_size_m)
+        grid = TileGrid(
+            origin_xy=(float(self.origin[0]), float(self.origin[1])),
+            cell_size_m=config.base_voxel_size_m,
+            cells_per_tile=self.tile_cells,
+        )
+        store = build_tile_store(chain([first], stream), self.workdir / "points", grid=grid)
+        logger.info("spilled %d points into %d tiles", store.n_points, len(store.tiles))
+        return store
 
-    def _load_points(self, tile: Tile) -> NDArray[np.void]:
-        records: NDArray[np.void] = np.fromfile(self._path(tile, "pts"), self._dtype)
-        return records
+    def _load_points(self, tile: Tile) -> TilePoints:
+        return self.store.read_core(tile)
+
+    def _attributes(self, points: TilePoints) -> NDArray[np.float64] | None:
+        return attribute_columns(points.cloud, self.config)
 
     # -- pass 2: pyramids ------------------------------------------------------------------
+    def _pyramid_path(self, tile: Tile) -> Path:
+        return self.workdir / f"{tile[0]}_{tile[1]}.pyramid.npz"
+
     def _build_pyramids(self) -> None:
-        assert self.origin is not None  # set by _spill
         config = self.config
         for tile in self.tiles:
-            records = self._load_points(tile)
+            points = self._load_points(tile)
             pyramid = build_pyramid(
-                records["xyz"],
+                points.cloud.xyz,
                 base_voxel_size_m=config.base_voxel_size_m,
                 n_levels=config.n_levels,
                 origin=self.origin,
-                attributes=records["attr"] if "attr" in (self._dtype.names or ()) else None,
+                attributes=self._attributes(points),
             )
-            arrays: dict[str, NDArray[Any]] = {"voxel": pyramid.point_voxel}
             for number, level in enumerate(pyramid.levels):
                 self._level_sizes[number] += level.n_voxels
-                arrays[f"xyz{number}"] = level.xyz
-                arrays[f"keys{number}"] = level.keys
-                arrays[f"attr{number}"] = level.attributes
-                arrays[f"parent{number}"] = level.parent
-            with self._path(tile, "pyr.npz").open("wb") as stream:
-                np.savez(stream, **arrays)  # type: ignore[arg-type]
+            save_pyramid(self._pyramid_path(tile), pyramid)
 
-    def _pyramid(self, tile: Tile) -> dict[str, NDArray[Any]]:
-        """A tile's pyramid arrays, through a byte-bounded LRU cache (halos reread them)."""
+    def _pyramid(self, tile: Tile) -> VoxelPyramid:
+        """A tile's pyramid, through a byte-bounded LRU cache (halos reread them)."""
         cached = self._cache.get(tile)
         if cached is not None:
             self._cache.move_to_end(tile)
             return cached
-        with np.load(self._path(tile, "pyr.npz")) as stored:
-            arrays = {name: stored[name] for name in stored.files}
-        self._cache[tile] = arrays
-        self._cache_bytes += sum(a.nbytes for a in arrays.values())
+        pyramid = load_pyramid(self._pyramid_path(tile))
+        self._cache[tile] = pyramid
+        self._cache_bytes += pyramid.nbytes
         while self._cache_bytes > self.cache_bytes and len(self._cache) > 1:
             _, evicted = self._cache.popitem(last=False)
-            self._cache_bytes -= sum(a.nbytes for a in evicted.values())
-        return arrays
+            self._cache_bytes -= evicted.nbytes
+        return pyramid
 
     # -- pass 3: features ------------------------------------------------------------------
     def iter_features(self, *, select: ArrayLike | None = None) -> Iterator[TileFeatures]:
@@ -274,17 +250,17 @@ class TiledScan:
         """
         wanted = None if select is None else np.unique(np.asarray(select, dtype=np.int64))
         for tile in self.tiles:
-            records = self._load_points(tile)
+            points = self._load_points(tile)
             keep = (
-                np.ones(records.size, bool)
+                np.ones(points.n_points, bool)
                 if wanted is None
-                else np.isin(records["idx"], wanted, assume_unique=True)
+                else np.isin(points.indices, wanted, assume_unique=True)
             )
             if not keep.any():
                 continue
-            labels = records["lab"][keep] if self.has_labels else None
-            table = self._tile_table(tile, records["xyz"][keep], np.flatnonzero(keep))
-            yield TileFeatures(tile, records["idx"][keep], table, labels)
+            labels = points.cloud.labels[keep] if points.cloud.labels is not None else None
+            table = self._tile_table(tile, points.cloud.xyz[keep], np.flatnonzero(keep))
+            yield TileFeatures(tile, points.indices[keep], table, labels)
 
     def _tile_table(
         self, tile: Tile, xyz: NDArray[np.float64], local: NDArray[np.int64]
@@ -303,22 +279,22 @@ class TiledScan:
             return FeatureTable(
                 config.feature_names, values, np.arange(queries.shape[0], dtype=np.int64)
             )
-        voxels, point_row = distinct_voxels(pyramid["voxel"][local])
+        voxels, point_row = distinct_voxels(pyramid.point_voxel[local])
         values = np.empty((voxels.size, config.n_features), np.float32)
         ancestor = voxels
         for number in range(config.n_levels):
             if number:
-                ancestor = pyramid[f"parent{number - 1}"][ancestor]
+                ancestor = pyramid.levels[number - 1].parent[ancestor]
 
             def compute(
                 needed: NDArray[np.int64], out: NDArray[np.float32], number: int = number
             ) -> None:
                 whole = self._whole_level(number)
                 if whole is None:
-                    out[:] = self._exact_level(tile, number, pyramid[f"xyz{number}"][needed])
+                    out[:] = self._exact_level(tile, number, pyramid.levels[number].xyz[needed])
                 else:
                     keys, rows = whole
-                    out[:] = rows[np.searchsorted(keys, pyramid[f"keys{number}"][needed])]
+                    out[:] = rows[np.searchsorted(keys, pyramid.levels[number].keys[needed])]
 
             fill_level_columns(values[:, number * width : (number + 1) * width], ancestor, compute)
         return FeatureTable(config.feature_names, values, point_row)
@@ -346,12 +322,38 @@ class TiledScan:
         self._whole[number] = result
         return result
 
+    def _first_halo_m(self, number: int) -> float:
+        """The halo a level's queries start with: most of them need no second ask.
+
+        Estimated once per level from a sample of the densest tile's level points (the
+        95th percentile of their k-th neighbour distance), never from the tiles visited
+        before, so a tile's work does not depend on the order tiles are computed in. Any
+        value gives the same rows; a good one saves re-queries.
+        """
+        cached = self._first_halo.get(number)
+        if cached is not None:
+            return cached
+        config = self.config
+        floor = _FIRST_HALO_VOXELS * config.voxel_sizes_m[number]
+        densest = max(self.tiles, key=self.store.count)
+        level = self._pyramid(densest).levels[number]
+        halo = floor
+        if level.n_voxels >= config.k_neighbours:
+            step = max(1, level.n_voxels // _HALO_SAMPLE)
+            sample = level.xyz[::step]
+            _, kth = compute_level_features(
+                LevelIndex(level.xyz, level.keys), level.attributes, sample, config=config
+            )
+            halo = max(floor, 1.1 * float(np.quantile(kth, 0.95)))
+        self._first_halo[number] = halo
+        return halo
+
     def _exact_level(
         self, tile: Tile, number: int, queries: NDArray[np.float64]
     ) -> NDArray[np.float32]:
         """Level ``number`` features of ``queries`` (in ``tile``), widening the halo until exact.
 
-        First the tile plus a halo learnt from the previous tile; a query whose k-th
+        First the tile plus the level's first halo (:meth:`_first_halo_m`); a query whose k-th
         neighbour lies beyond the halo's edge is asked again in a box containing the ball
         of that radius (the k-th distance within a subset bounds the true one), which is
         then exact; a subset with fewer than k points doubles the box.
@@ -360,7 +362,7 @@ class TiledScan:
         size = self.tile_size_m
         out = np.empty((queries.shape[0], len(config.level_feature_names)), np.float32)
         pending = np.arange(queries.shape[0])
-        halo = max(_FIRST_HALO_VOXELS * config.voxel_sizes_m[number], self._halo_hint[number])
+        halo = self._first_halo_m(number)
         box = np.array(
             [
                 tile[0] * size - halo,
@@ -369,7 +371,6 @@ class TiledScan:
                 (tile[1] + 1) * size + halo,
             ]
         )
-        first = True
         while pending.size:
             box[[0, 2]] = np.maximum(box[[0, 2]], self._tile_low - 1.0)
             box[[1, 3]] = np.minimum(box[[1, 3]], self._tile_high + 1.0)
@@ -393,9 +394,6 @@ class TiledScan:
                 edge = _distance_to_edge(asked, box, infinite)
                 exact = enough & (kth * (1.0 + 1e-6) + _SAFETY_M < edge)
             out[pending[exact]] = block[exact]
-            if first and enough:  # the next tile starts with a halo most queries need
-                self._halo_hint[number] = 1.1 * float(np.quantile(kth, 0.95))
-                first = False
             pending = pending[~exact]
             if pending.size:
                 if enough:
@@ -428,7 +426,7 @@ class TiledScan:
             math.floor((low[1] - _SLACK_M) / size),
             math.floor((high[1] + _SLACK_M) / size),
         )
-        if (x_high - x_low + 1) * (y_high - y_low + 1) <= len(self._counts):
+        if (x_high - x_low + 1) * (y_high - y_low + 1) <= len(self.tiles):
             candidates: Iterable[Tile] = (
                 (ix, iy) for ix in range(x_low, x_high + 1) for iy in range(y_low, y_high + 1)
             )
@@ -436,12 +434,12 @@ class TiledScan:
             candidates = self.tiles
         parts_xyz, parts_keys, parts_attr = [], [], []
         for other in candidates:
-            if other not in self._counts or not (
+            if other not in self.store or not (
                 x_low <= other[0] <= x_high and y_low <= other[1] <= y_high
             ):
                 continue
-            pyramid = self._pyramid(other)
-            xyz = pyramid[f"xyz{number}"]
+            level = self._pyramid(other).levels[number]
+            xyz = level.xyz
             inside = (
                 (xyz[:, 0] >= box[0])
                 & (xyz[:, 0] <= box[1])
@@ -449,8 +447,8 @@ class TiledScan:
                 & (xyz[:, 1] <= box[3])
             )
             parts_xyz.append(xyz[inside])
-            parts_keys.append(pyramid[f"keys{number}"][inside])
-            parts_attr.append(pyramid[f"attr{number}"][inside])
+            parts_keys.append(level.keys[inside])
+            parts_attr.append(level.attributes[inside])
         return np.concatenate(parts_xyz), np.concatenate(parts_keys), np.concatenate(parts_attr)
 
 

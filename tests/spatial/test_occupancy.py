@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from semantic3d.evaluation.occupancy import OccupancyGrid
+from semantic3d.spatial.occupancy import OccupancyGrid
 
 
 def _clustered(rng: np.random.Generator, n: int) -> np.ndarray:

@@ -1,0 +1,107 @@
+"""Square XY tiles made of whole cells of an integer grid.
+
+A :class:`TileGrid` cuts the plane into square columns ("tiles") of ``cells_per_tile``
+cells of ``cell_size_m``, anchored at ``origin_xy``. A point's tile is computed from its
+integer cell (``floor((x - origin) / cell) // cells_per_tile``), exactly as the voxel
+pyramid computes its voxels, so every voxel of a grid whose cells nest in the tile's lies
+in exactly one tile, however the points are split between processes.
+
+>>> grid = TileGrid(origin_xy=(0.0, 0.0), cell_size_m=0.5, cells_per_tile=20)
+>>> grid.tile_size_m
+10.0
+>>> grid.tile_keys(np.array([[3.0, -0.1, 7.0], [10.0, 19.99, 0.0]])).tolist()
+[[0, -1], [1, 1]]
+>>> grid.tile_bounds((1, -1))
+(10.0, -10.0, 20.0, 0.0)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from semantic3d.core.errors import ShapeError
+
+__all__ = ["Bounds", "TileGrid", "TileKey"]
+
+TileKey = tuple[int, int]
+"""``(ix, iy)`` index of a tile."""
+
+Bounds = tuple[float, float, float, float]
+"""``(x_min, y_min, x_max, y_max)`` of a rectangle, metres."""
+
+
+@dataclass(frozen=True, slots=True)
+class TileGrid:
+    """Square XY tiles of ``cells_per_tile`` cells of ``cell_size_m``, anchored at ``origin_xy``.
+
+    Attributes:
+        origin_xy: anchor of cell ``(0, 0)`` (absolute metres).
+        cell_size_m: edge of one cell.
+        cells_per_tile: cells along a tile's edge.
+    """
+
+    origin_xy: tuple[float, float]
+    cell_size_m: float
+    cells_per_tile: int = 1
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.cell_size_m) and self.cell_size_m > 0):
+            raise ShapeError(f"cell_size_m: expected a positive size, found {self.cell_size_m}")
+        if self.cells_per_tile < 1:
+            raise ShapeError(
+                f"cells_per_tile: expected a positive count, found {self.cells_per_tile}"
+            )
+        if not all(np.isfinite(value) for value in self.origin_xy):
+            raise ShapeError(f"origin_xy: expected finite values, found {self.origin_xy}")
+
+    @classmethod
+    def square(cls, tile_size_m: float, *, origin_xy: tuple[float, float] = (0.0, 0.0)) -> TileGrid:
+        """Tiles of ``tile_size_m`` with one cell per tile."""
+        return cls(origin_xy=origin_xy, cell_size_m=float(tile_size_m), cells_per_tile=1)
+
+    @property
+    def tile_size_m(self) -> float:
+        """Edge of a tile."""
+        return self.cell_size_m * self.cells_per_tile
+
+    def tile_keys(self, xyz: NDArray[np.float64]) -> NDArray[np.int64]:
+        """``(n, 2)`` int64 tile index of each point of ``(n, >=2)`` coordinates."""
+        origin = np.asarray(self.origin_xy, dtype=np.float64)
+        cells = np.floor((xyz[:, :2] - origin) / self.cell_size_m).astype(np.int64)
+        if self.cells_per_tile == 1:
+            return cells
+        keys: NDArray[np.int64] = cells // self.cells_per_tile
+        return keys
+
+    def tile_bounds(self, tile: TileKey) -> Bounds:
+        """``(x_min, y_min, x_max, y_max)`` of ``tile``."""
+        size = self.tile_size_m
+        x0, y0 = self.origin_xy
+        return (
+            x0 + tile[0] * size,
+            y0 + tile[1] * size,
+            x0 + (tile[0] + 1) * size,
+            y0 + (tile[1] + 1) * size,
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready description (see :meth:`from_dict`)."""
+        return {
+            "origin_xy": list(self.origin_xy),
+            "cell_size_m": self.cell_size_m,
+            "cells_per_tile": self.cells_per_tile,
+        }
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> TileGrid:
+        """The grid :meth:`to_dict` described."""
+        x, y = data["origin_xy"]
+        return cls(
+            origin_xy=(float(x), float(y)),
+            cell_size_m=float(data["cell_size_m"]),
+            cells_per_tile=int(data["cells_per_tile"]),
+        )

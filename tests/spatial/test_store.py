@@ -1,0 +1,255 @@
+"""TileStore: cores partition the scan, halos of any width equal a brute-force search."""
+
+from __future__ import annotations
+
+import pickle
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from semantic3d.core.errors import DataFormatError, ShapeError
+from semantic3d.core.pointcloud import PointCloud
+from semantic3d.io.cache import write_cache
+from semantic3d.spatial import (
+    TemporaryTileStore,
+    TileGrid,
+    TileJob,
+    TileStore,
+    build_tile_store,
+    open_cache_tiles,
+)
+
+
+def _cloud(n: int, *, seed: int = 5, extent: float = 3.0, labels: bool = True) -> PointCloud:
+    rng = np.random.default_rng(seed)
+    return PointCloud.from_arrays(
+        rng.uniform(-extent, extent, (n, 3)),
+        intensity=rng.integers(-2048, 2047, n),
+        rgb=rng.integers(0, 256, (n, 3)),
+        labels=rng.integers(0, 9, n) if labels else None,
+    )
+
+
+def _chunks(cloud: PointCloud, size: int) -> list[PointCloud]:
+    return [cloud[start : start + size] for start in range(0, cloud.n_points, size)]
+
+
+def _brute_halo(cloud: PointCloud, grid: TileGrid, tile: tuple[int, int], halo_m: float) -> set:
+    x0, y0, x1, y1 = grid.tile_bounds(tile)
+    keys = grid.tile_keys(cloud.xyz)
+    outside = (keys[:, 0] != tile[0]) | (keys[:, 1] != tile[1])
+    x, y = cloud.xyz[:, 0], cloud.xyz[:, 1]
+    near = (x >= x0 - halo_m) & (x <= x1 + halo_m) & (y >= y0 - halo_m) & (y <= y1 + halo_m)
+    return set(np.flatnonzero(outside & near).tolist())
+
+
+def test_cores_partition_the_scan_in_scan_order(tmp_path: Path) -> None:
+    cloud = _cloud(5_000)
+    grid = TileGrid.square(1.0)
+    store = build_tile_store(_chunks(cloud, 700), tmp_path / "store", grid=grid)
+    assert store.n_points == 5_000 and store.has_labels
+    assert len(store.tiles) == 36 and list(store.tiles) == sorted(store.tiles)
+    seen = []
+    for tile in store.tiles:
+        core = store.read_core(tile)
+        assert store.count(tile) == core.n_points
+        assert np.all(np.diff(core.indices) > 0)  # scan order
+        assert np.all(grid.tile_keys(core.cloud.xyz) == tile)
+        expected = cloud[core.indices]
+        assert core.cloud.equals(expected)  # every column comes back exactly
+        seen.append(core.indices)
+    np.testing.assert_array_equal(np.sort(np.concatenate(seen)), np.arange(5_000))
+    assert store.read_core((99, 99)).n_points == 0
+
+
+@pytest.mark.parametrize("halo_m", [0.0, 0.03, 0.4, 1.0, 2.6])
+def test_halos_of_any_width_equal_a_brute_force_search(tmp_path: Path, halo_m: float) -> None:
+    cloud = _cloud(4_000)
+    grid = TileGrid(origin_xy=(0.25, -0.1), cell_size_m=0.25, cells_per_tile=4)
+    store = build_tile_store(_chunks(cloud, 1_000), tmp_path / "s", grid=grid, subdivisions=8)
+    for tile in store.tiles:
+        halo = store.read_halo(tile, halo_m)
+        assert set(halo.indices.tolist()) == _brute_halo(cloud, grid, tile, halo_m)
+        assert halo.cloud.equals(cloud[halo.indices])
+
+
+def test_halos_through_the_sub_cell_index_of_large_tiles(tmp_path: Path) -> None:
+    """Tiles above the small-tile threshold read only the border sub-cells."""
+    cloud = _cloud(60_000, extent=2.0)
+    grid = TileGrid.square(2.0)
+    store = build_tile_store([cloud], tmp_path / "s", grid=grid, subdivisions=16)
+    assert min(store.count(tile) for tile in store.tiles) > 4096
+    for halo_m in (0.01, 0.3):
+        for tile in store.tiles:
+            got = store.read_halo(tile, halo_m).indices
+            assert got.size == np.unique(got).size
+            assert set(got.tolist()) == _brute_halo(cloud, grid, tile, halo_m)
+
+
+def test_read_box_equals_a_brute_force_search(tmp_path: Path) -> None:
+    cloud = _cloud(3_000)
+    store = build_tile_store([cloud], tmp_path / "s", grid=TileGrid.square(0.7))
+    box = (-1.3, 0.2, 0.9, 2.5)
+    x, y = cloud.xyz[:, 0], cloud.xyz[:, 1]
+    inside = (x >= box[0]) & (x <= box[2]) & (y >= box[1]) & (y <= box[3])
+    got = store.read_box(box).indices
+    assert sorted(got.tolist()) == np.flatnonzero(inside).tolist()
+
+
+def test_spilling_to_disk_changes_nothing(tmp_path: Path) -> None:
+    cloud = _cloud(3_000)
+    grid = TileGrid.square(1.5)
+    memory = build_tile_store(_chunks(cloud, 250), tmp_path / "m", grid=grid)
+    disk = build_tile_store(_chunks(cloud, 250), tmp_path / "d", grid=grid, buffer_points=100)
+    assert memory.tiles == disk.tiles
+    for tile in memory.tiles:
+        for width in (0.0, 0.2):
+            a, b = memory.read(tile, halo_m=width), disk.read(tile, halo_m=width)
+            np.testing.assert_array_equal(a.core.indices, b.core.indices)
+            np.testing.assert_array_equal(a.halo.indices, b.halo.indices)
+    assert not list(tmp_path.glob(".*partial"))  # no staging folder left behind
+
+
+def test_sparse_tiles_far_apart(tmp_path: Path) -> None:
+    """Two clusters 10 km apart in 1 m tiles: tile ids are renumbered, not allocated densely."""
+    near, far = _cloud(200, seed=1), _cloud(200, seed=2)
+    far = PointCloud(
+        far.xyz + np.array([10_000.0, 10_000.0, 0.0]), far.intensity, far.rgb, far.labels
+    )
+    store = build_tile_store(
+        [PointCloud.concatenate([near, far])], tmp_path / "s", grid=TileGrid.square(1.0)
+    )
+    assert len(store.tiles) == 72
+    assert sum(store.count(tile) for tile in store.tiles) == 400
+
+
+def test_a_store_and_its_jobs_travel_to_another_process(tmp_path: Path) -> None:
+    cloud = _cloud(2_000)
+    store = build_tile_store([cloud], tmp_path / "s", grid=TileGrid.square(1.0))
+    assert len(pickle.dumps(store)) < 500
+    again = pickle.loads(pickle.dumps(store))
+    assert again.tiles == store.tiles
+    jobs = store.jobs(halo_m=0.25)
+    assert len(jobs) == len(store.tiles)
+    assert all(len(pickle.dumps(job)) < 300 for job in jobs)
+    with ProcessPoolExecutor(max_workers=1) as pool:
+        remote = list(pool.map(_core_and_halo_sizes, jobs[:4]))
+    local = [_core_and_halo_sizes(job) for job in jobs[:4]]
+    assert remote == local
+    assert all(core > 0 and halo > 0 for core, halo in remote)
+
+
+def _core_and_halo_sizes(job: TileJob) -> tuple[int, int]:
+    data = job.read()
+    assert data.bounds == job.bounds
+    return data.core.n_points, data.halo.n_points
+
+
+def test_existing_folders_are_kept_unless_overwrite(tmp_path: Path) -> None:
+    target = tmp_path / "s"
+    target.mkdir()
+    (target / "keep.txt").write_text("user data")
+    with pytest.raises(FileExistsError, match="expected a new folder"):
+        build_tile_store([_cloud(10)], target, grid=TileGrid.square(1.0))
+    assert (target / "keep.txt").read_text() == "user data"
+    store = build_tile_store([_cloud(10)], target, grid=TileGrid.square(1.0), overwrite=True)
+    assert store.n_points == 10 and not (target / "keep.txt").exists()
+
+
+def test_an_error_mid_stream_leaves_nothing(tmp_path: Path) -> None:
+    def chunks():
+        yield _cloud(100)
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        build_tile_store(chunks(), tmp_path / "s", grid=TileGrid.square(1.0), buffer_points=10)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_bad_input_is_refused(tmp_path: Path) -> None:
+    grid = TileGrid.square(1.0)
+    with pytest.raises(ShapeError, match="expected labels on every chunk or on none"):
+        build_tile_store([_cloud(10), _cloud(10, labels=False)], tmp_path / "a", grid=grid)
+    bad = _cloud(10)
+    bad.xyz[3, 0] = np.nan
+    with pytest.raises(ShapeError, match="expected finite coordinates"):
+        build_tile_store([bad], tmp_path / "b", grid=grid)
+    with pytest.raises(ShapeError, match="cell_size_m: expected a positive size"):
+        TileGrid.square(0.0)
+    store = build_tile_store([_cloud(10)], tmp_path / "c", grid=grid)
+    with pytest.raises(ShapeError, match="halo_m: expected a finite width"):
+        store.read_halo(store.tiles[0], -1.0)
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+
+
+def test_damaged_stores_are_refused(tmp_path: Path) -> None:
+    with pytest.raises(DataFormatError, match=r"expected a tile store holding tiles\.json"):
+        TileStore(tmp_path)
+    build_tile_store([_cloud(50)], tmp_path / "s", grid=TileGrid.square(1.0))
+    manifest = tmp_path / "s" / "tiles.json"
+    manifest.write_text(manifest.read_text().replace('"version": 1', '"version": 99'))
+    with pytest.raises(DataFormatError, match="expected tile store version 1, found 99"):
+        TileStore(tmp_path / "s")
+
+
+def test_empty_scans_make_empty_stores(tmp_path: Path) -> None:
+    store = build_tile_store([], tmp_path / "s", grid=TileGrid.square(1.0))
+    assert store.n_points == 0 and store.tiles == ()
+
+
+def test_temporary_store_is_removed_on_exit(tmp_path: Path) -> None:
+    with TemporaryTileStore([_cloud(100)], grid=TileGrid.square(1.0), workdir=tmp_path) as store:
+        folder = store.directory
+        assert folder.is_dir()
+    assert not folder.exists()
+
+
+def test_cache_tiles_are_built_once_and_rebuilt_when_the_cache_changes(tmp_path: Path) -> None:
+    cache = tmp_path / "scan.cache"
+    write_cache(cache, [_cloud(1_000)])
+    calls: list[int] = []
+    first = open_cache_tiles(cache, tile_size_m=1.0, progress=calls.append)
+    assert first.n_points == 1_000 and calls[-1] == 1_000
+    stamp = (first.directory / "tiles.json").stat().st_mtime_ns
+    again = open_cache_tiles(cache, tile_size_m=1.0)
+    assert (again.directory / "tiles.json").stat().st_mtime_ns == stamp  # reused
+    write_cache(cache.with_name("other.cache"), [_cloud(500, seed=9)])
+    for name in ("meta.json", "xyz.npy", "intensity.npy", "rgb.npy", "labels.npy"):
+        (cache / name).write_bytes((cache.with_name("other.cache") / name).read_bytes())
+    assert open_cache_tiles(cache, tile_size_m=1.0).n_points == 500
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    n=st.integers(1, 300),
+    chunk=st.integers(1, 80),
+    tile=st.floats(0.05, 5.0),
+    halo=st.floats(0.0, 3.0),
+    subdivisions=st.integers(1, 9),
+)
+def test_round_trip_and_halos_for_any_grid(
+    tmp_path_factory: pytest.TempPathFactory,
+    n: int,
+    chunk: int,
+    tile: float,
+    halo: float,
+    subdivisions: int,
+) -> None:
+    cloud = _cloud(n, seed=n, extent=2.0)
+    grid = TileGrid.square(tile)
+    folder = tmp_path_factory.mktemp("store") / "s"
+    store = build_tile_store(
+        _chunks(cloud, chunk), folder, grid=grid, subdivisions=subdivisions, buffer_points=50
+    )
+    cores = [store.read_core(t) for t in store.tiles]
+    indices = np.concatenate([c.indices for c in cores])
+    np.testing.assert_array_equal(np.sort(indices), np.arange(n))
+    assert PointCloud.concatenate([c.cloud for c in cores]).equals(cloud[indices])
+    probe = store.tiles[len(store.tiles) // 2]
+    assert set(store.read_halo(probe, halo).indices.tolist()) == _brute_halo(
+        cloud, grid, probe, halo
+    )
