@@ -201,10 +201,22 @@ def test_empty_scans_make_empty_stores(tmp_path: Path) -> None:
     assert store.n_points == 0 and store.tiles == ()
 
 
-def test_temporary_store_is_removed_on_exit(tmp_path: Path) -> None:
-    with TemporaryTileStore([_cloud(100)], grid=TileGrid.square(1.0), workdir=tmp_path) as store:
-        folder = store.directory
-        assert folder.is_dir()
+def test_temporary_store_is_in_memory_when_small_and_removed_on_exit(tmp_path: Path) -> None:
+    cloud = _cloud(300)
+    grid = TileGrid.square(1.0)
+    with TemporaryTileStore([cloud], grid=grid, workdir=tmp_path) as small:
+        assert small.directory is None
+        with pytest.raises(TypeError, match="stays in its process"):
+            pickle.dumps(small)
+    assert list(tmp_path.iterdir()) == []
+    spilled = TemporaryTileStore(_chunks(cloud, 50), grid=grid, workdir=tmp_path, buffer_points=60)
+    with spilled as large:
+        folder = large.directory
+        assert folder is not None and folder.is_dir() and spilled.spilled_points > 0
+        for tile in small.tiles:
+            assert large.read(tile, halo_m=0.3).halo.cloud.equals(
+                small.read(tile, halo_m=0.3).halo.cloud
+            )
     assert not folder.exists()
 
 
@@ -253,3 +265,21 @@ def test_round_trip_and_halos_for_any_grid(
     assert set(store.read_halo(probe, halo).indices.tolist()) == _brute_halo(
         cloud, grid, probe, halo
     )
+
+
+@pytest.mark.parametrize("buffer_points", [10, 1 << 20])
+def test_kept_points_only_with_their_scan_positions(tmp_path: Path, buffer_points: int) -> None:
+    cloud = _cloud(2_000)
+    keep = np.asarray(cloud.labels) % 3 != 0
+    keep[:50] = True  # one chunk keeps everything
+    with TemporaryTileStore.writer(grid=TileGrid.square(1.0), buffer_points=buffer_points) as w:
+        for start in range(0, 2_000, 50):
+            w.add(cloud[start : start + 50], keep=keep[start : start + 50])
+        w.add(cloud[:0], keep=keep[:0])
+        with TemporaryTileStore.adopt(w.close()) as store:
+            assert store.n_points == int(keep.sum())
+            got = np.concatenate([store.read_core(t).indices for t in store.tiles])
+            np.testing.assert_array_equal(np.sort(got), np.flatnonzero(keep))
+            for tile in store.tiles:
+                core = store.read_core(tile)
+                assert core.cloud.equals(cloud[core.indices])

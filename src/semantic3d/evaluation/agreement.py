@@ -25,7 +25,7 @@ are sparse far from their station), the rest is put in voxel order and matched w
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -39,7 +39,7 @@ from semantic3d.metrics.confusion import ConfusionMatrix
 from semantic3d.metrics.scores import Scores
 from semantic3d.spatial.grid import TileGrid
 from semantic3d.spatial.occupancy import OccupancyGrid
-from semantic3d.spatial.store import TemporaryTileStore, TilePoints
+from semantic3d.spatial.store import TemporaryTileStore, TilePoints, TileStoreWriter
 
 logger = logging.getLogger(__name__)
 
@@ -100,9 +100,10 @@ class AgreementResult:
         return self.a_to_b, self.b_to_a
 
 
-def _kept_chunks(chunks: Iterable[PointCloud], name: str) -> Iterator[PointCloud]:
-    """The chunks less the excluded labels, checked."""
+def _spill_scan(writer: TileStoreWriter, chunks: Iterable[PointCloud], name: str) -> int:
+    """Bin a scan's points less the excluded labels; return how many were kept."""
     excluded = np.array(EXCLUDED_VALUES, dtype=np.uint8)
+    kept = 0
     for chunk in chunks:
         if chunk.labels is None:
             raise ShapeError(f"scan {name}: expected labelled points, found a chunk without labels")
@@ -111,7 +112,10 @@ def _kept_chunks(chunks: Iterable[PointCloud], name: str) -> Iterator[PointCloud
                 f"scan {name}: expected label values 0..{N_CLASSES}, "
                 f"found {int(chunk.labels.max())}"
             )
-        yield chunk[~np.isin(chunk.labels, excluded)]
+        keep = ~np.isin(chunk.labels, excluded)
+        writer.add(chunk, keep=keep)
+        kept += int(keep.sum())
+    return kept
 
 
 def _rows(points: TilePoints) -> NDArray[np.float64]:
@@ -218,16 +222,17 @@ def compute_label_agreement(
     matrices = {_A: ConfusionMatrix(N_CLASSES), _B: ConfusionMatrix(N_CLASSES)}
     matched = {_A: 0, _B: 0}
     grid = TileGrid.square(tile_size_m)
-    with (
-        TemporaryTileStore(
-            _kept_chunks(a, "A"), grid=grid, workdir=spill_directory, buffer_points=buffer_points
-        ) as store_a,
-        TemporaryTileStore(
-            _kept_chunks(b, "B"), grid=grid, workdir=spill_directory, buffer_points=buffer_points
-        ) as store_b,
-    ):
+
+    def spill(chunks: Iterable[PointCloud], name: str) -> TemporaryTileStore:
+        with TemporaryTileStore.writer(
+            grid=grid, workdir=spill_directory, buffer_points=buffer_points
+        ) as writer:
+            _spill_scan(writer, chunks, name)
+            return TemporaryTileStore.adopt(writer.close(), spilled_points=writer.spilled_points)
+
+    with spill(a, "A") as store_a, spill(b, "B") as store_b:
         stores = {_A: store_a, _B: store_b}
-        n_points = {scan: stores[scan].n_points for scan in (_A, _B)}
+        n_points = {scan: stores[scan].n_points for scan in (_A, _B)}  # labels 0 and 7 left out
         tiles = sorted(set(store_a.tiles) | set(store_b.tiles))
         total = len(tiles)
         for done, tile in enumerate(tiles, start=1):

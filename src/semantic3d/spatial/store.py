@@ -64,7 +64,7 @@ ORDER_FILE = "order.npy"
 OFFSETS_FILE = "offsets.npy"
 STARTS_FILE = "starts.npy"
 KEYS_FILE = "keys.npy"
-DEFAULT_SUBDIVISIONS = 16
+DEFAULT_SUBDIVISIONS = 32
 DEFAULT_BUFFER_POINTS = 1 << 22
 _SMALL_TILE_POINTS = 4096
 """Tiles this small are filtered whole: cheaper than gathering their sub-cells."""
@@ -102,19 +102,25 @@ class TilePoints:
 
     @classmethod
     def from_records(cls, records: NDArray[Any]) -> TilePoints:
-        """Points of packed records (copied out of any memory map)."""
-        labels = (
-            np.ascontiguousarray(records["labels"])
-            if "labels" in (records.dtype.names or ())
-            else None
-        )
+        """Points over packed records, without copying: read-only strided views.
+
+        Columns of a tile read from a folder store are views of its memory map (read on
+        first touch); ``np.ascontiguousarray`` or ``cloud[...]`` makes private copies.
+        """
+        names = records.dtype.names or ()
+
+        def column(name: str) -> NDArray[Any]:
+            view = records[name]
+            view.flags.writeable = False
+            return view
+
         cloud = PointCloud(
-            np.ascontiguousarray(records["xyz"]),
-            np.ascontiguousarray(records["intensity"]),
-            np.ascontiguousarray(records["rgb"]),
-            labels,
+            column("xyz"),
+            column("intensity"),
+            column("rgb"),
+            column("labels") if "labels" in names else None,
         )
-        return cls(cloud, np.ascontiguousarray(records["index"]))
+        return cls(cloud, column("index"))
 
 
 @dataclass(frozen=True, slots=True)
@@ -145,6 +151,9 @@ class TileStore:
     Raises:
         DataFormatError: no manifest, another layout version, or missing tile files.
     """
+
+    directory: Path | None
+    """The store's folder; None for a small store held in memory."""
 
     def __init__(self, directory: str | Path) -> None:
         self.directory = Path(directory)
@@ -186,32 +195,69 @@ class TileStore:
                 path=str(self.directory),
             )
 
+    @classmethod
+    def _in_memory(
+        cls,
+        *,
+        grid: TileGrid,
+        subdivisions: int,
+        tiles: list[TileKey],
+        offsets: NDArray[np.int64],
+        starts: NDArray[np.int64],
+        points: NDArray[Any],
+        order: NDArray[np.int32],
+        metadata: dict[str, Any],
+    ) -> TileStore:
+        """A store held in memory (a small temporary store; it cannot be pickled)."""
+        store = cls.__new__(cls)
+        store.directory = None
+        store.grid = grid
+        store.subdivisions = subdivisions
+        store.n_points = int(points.shape[0])
+        store.has_labels = "labels" in (points.dtype.names or ())
+        store.metadata = metadata
+        store._dtype = points.dtype
+        store._offsets = offsets
+        store._starts = starts
+        store.tiles = tuple(tiles)
+        store._row = {tile: row for row, tile in enumerate(store.tiles)}
+        store._points = points
+        store._order = order
+        return store
+
     def _arrays(self) -> tuple[NDArray[Any], NDArray[np.int32]]:
         """The memory maps of the points and of the sub-cell order, opened once."""
         if self._points is None or self._order is None:
             try:
                 # Plain arrays over the maps: slicing a np.memmap subclass costs ~10 µs.
-                self._points = np.asarray(np.load(self.directory / POINTS_FILE, mmap_mode="r"))
-                self._order = np.asarray(np.load(self.directory / ORDER_FILE, mmap_mode="r"))
+                folder = self._folder()
+                self._points = np.asarray(np.load(folder / POINTS_FILE, mmap_mode="r"))
+                self._order = np.asarray(np.load(folder / ORDER_FILE, mmap_mode="r"))
             except (OSError, ValueError) as exc:
                 raise DataFormatError(
-                    f"expected the store's point files, found {exc}", path=str(self.directory)
+                    f"expected the store's point files, found {exc}", path=str(folder)
                 ) from exc
             if self._points.shape != (self.n_points,) or self._points.dtype != self._dtype:
                 raise DataFormatError(
                     f"expected {self.n_points} records of {self._dtype}, found "
                     f"{self._points.shape} {self._points.dtype}",
-                    path=str(self.directory / POINTS_FILE),
+                    path=str(folder / POINTS_FILE),
                 )
         return self._points, self._order
 
     def __reduce__(self) -> tuple[Any, tuple[str]]:
-        return (TileStore, (str(self.directory),))
+        return (TileStore, (str(self._folder()),))
 
     def __repr__(self) -> str:
-        return (
-            f"TileStore({str(self.directory)!r}, {len(self.tiles)} tiles, {self.n_points} points)"
-        )
+        where = "in memory" if self.directory is None else repr(str(self.directory))
+        return f"TileStore({where}, {len(self.tiles)} tiles, {self.n_points} points)"
+
+    def _folder(self) -> Path:
+        if self.directory is None:
+            raise TypeError(
+                "a tile store held in memory stays in its process: build it in a folder"
+            )
+        return self.directory
 
     def __contains__(self, tile: object) -> bool:
         return tile in self._row
@@ -287,7 +333,7 @@ class TileStore:
         from semantic3d.spatial.job import TileJob
 
         return tuple(
-            TileJob(str(self.directory), tile, self.grid.tile_bounds(tile), halo_m)
+            TileJob(str(self._folder()), tile, self.grid.tile_bounds(tile), halo_m)
             for tile in self.tiles
         )
 
@@ -328,9 +374,11 @@ class TileStore:
         sub = self.grid.tile_size_m / n_sub
 
         def span(low: float, high: float, start: float) -> tuple[int, int]:
-            # One sub-cell of slack each side absorbs rounding in the sub-cell assignment.
-            first = max(0, math.floor((low - start) / sub) - 1)
-            last = min(n_sub - 1, math.floor((high - start) / sub) + 1)
+            # The very expression of the assignment (_sub_cells): IEEE subtraction and
+            # division round monotonically, so low <= x implies floor((low - start) / sub)
+            # <= the point's sub-cell, and no slack is needed.
+            first = max(0, math.floor((low - start) / sub))
+            last = min(n_sub - 1, math.floor((high - start) / sub))
             return first, last
 
         sx0, sx1 = span(box[0], box[2], t_x0)
@@ -349,7 +397,7 @@ class TileStore:
             picked = np.concatenate(rows) if len(rows) > 1 else np.asarray(rows[0])
             if picked.size == 0:
                 return np.empty(0, self._dtype)
-            candidates = records[np.sort(picked)]
+            candidates = np.take(records, np.sort(picked))
         xyz = candidates["xyz"]
         inside = (
             (xyz[:, 0] >= box[0])
@@ -357,7 +405,7 @@ class TileStore:
             & (xyz[:, 1] >= box[1])
             & (xyz[:, 1] <= box[3])
         )
-        selected: NDArray[Any] = candidates[inside]
+        selected: NDArray[Any] = np.take(candidates, np.flatnonzero(inside))
         return selected
 
 
@@ -366,28 +414,33 @@ class TileStoreWriter:
 
     The store is written into a hidden sibling folder and renamed into place when sealed,
     so an error or Ctrl-C leaves nothing under ``directory`` (use as a context manager).
+    Without a ``directory`` the store is temporary: held in memory when no tile had to be
+    spilled to disk, else sealed in a scratch folder under ``workdir`` that the caller removes
+    (:class:`TemporaryTileStore` does both).
 
     Args:
-        directory: the store folder to create.
+        directory: the store folder to create, or None for a temporary store.
         grid: the tiles.
         subdivisions: sub-cells per tile edge of the spatial index.
         buffer_points: points held in memory before appending to the tile files.
         overwrite: replace an existing store folder at ``directory``.
+        workdir: where a temporary store spills (the system's temporary folder by default).
         metadata: JSON-ready values kept in the manifest (e.g. what the store was built from).
     """
 
     def __init__(
         self,
-        directory: str | Path,
+        directory: str | Path | None,
         *,
         grid: TileGrid,
         subdivisions: int = DEFAULT_SUBDIVISIONS,
         buffer_points: int = DEFAULT_BUFFER_POINTS,
         overwrite: bool = False,
         metadata: dict[str, Any] | None = None,
+        workdir: str | Path | None = None,
     ) -> None:
-        self.directory = Path(directory)
-        if self.directory.exists() and not overwrite:
+        self.directory = None if directory is None else Path(directory)
+        if self.directory is not None and self.directory.exists() and not overwrite:
             raise FileExistsError(
                 f"{self.directory}: expected a new folder for the tile store, found one "
                 "(pass overwrite=True to replace it)"
@@ -398,16 +451,21 @@ class TileStoreWriter:
         self.subdivisions = subdivisions
         self.metadata = dict(metadata or {})
         self._buffer_points = buffer_points
-        self.directory.parent.mkdir(parents=True, exist_ok=True)
-        self._staging = self.directory.with_name(
-            f".{self.directory.name}.{uuid.uuid4().hex[:8]}.partial"
-        )
-        self._staging.mkdir()
+        if self.directory is None:
+            self._staging = Path(tempfile.mkdtemp(prefix="semantic3d-tiles-", dir=workdir))
+        else:
+            self.directory.parent.mkdir(parents=True, exist_ok=True)
+            self._staging = self.directory.with_name(
+                f".{self.directory.name}.{uuid.uuid4().hex[:8]}.partial"
+            )
+            self._staging.mkdir()
         self._buffers: dict[TileKey, list[NDArray[Any]]] = defaultdict(list)
         self._buffered = 0
         self._on_disk: set[TileKey] = set()
         self._dtype: np.dtype[Any] | None = None
         self.n_points = 0
+        """Points stored so far."""
+        self._next_index = 0
         self.spilled_points = 0
 
     def __enter__(self) -> TileStoreWriter:
@@ -422,12 +480,20 @@ class TileStoreWriter:
         if exc_type is not None:
             self.abort()
 
-    def add(self, cloud: PointCloud, *, indices: NDArray[np.int64] | None = None) -> None:
+    def add(
+        self,
+        cloud: PointCloud,
+        *,
+        indices: NDArray[np.int64] | None = None,
+        keep: NDArray[np.bool_] | None = None,
+    ) -> None:
         """Bin the points of ``cloud``.
 
         Args:
             cloud: the next chunk (every chunk with labels, or none).
-            indices: position of each point in the scan; default: the running count.
+            indices: position of each point in the scan; default: the running count
+                (which counts every point of every chunk, kept or not).
+            keep: store only these points (cheaper than filtering the chunk first).
         """
         if self._dtype is None:
             self._dtype = record_dtype(with_labels=cloud.labels is not None)
@@ -436,12 +502,14 @@ class TileStoreWriter:
         n = cloud.n_points
         if indices is not None and np.shape(indices) != (n,):
             raise ShapeError(f"indices: expected ({n},), found {np.shape(indices)}")
+        if keep is not None and np.shape(keep) != (n,):
+            raise ShapeError(f"keep: expected ({n},), found {np.shape(keep)}")
         if n == 0:
             return
         records = np.empty(n, self._dtype)
         records["xyz"] = cloud.xyz
         records["index"] = (
-            np.arange(self.n_points, self.n_points + n, dtype=np.int64)
+            np.arange(self._next_index, self._next_index + n, dtype=np.int64)
             if indices is None
             else indices
         )
@@ -452,34 +520,49 @@ class TileStoreWriter:
         if not np.all(np.isfinite(cloud.xyz[:, :2])):
             raise ShapeError("xyz: expected finite coordinates, found NaN or infinity")
         keys = self.grid.tile_keys(cloud.xyz)
-        self._add_grouped(keys[:, 0], keys[:, 1], records)
-        self.n_points += n
+        self._add_grouped(keys[:, 0], keys[:, 1], records, keep)
+        self._next_index += n
 
     def _add_grouped(
-        self, ix: NDArray[np.int64], iy: NDArray[np.int64], records: NDArray[Any]
+        self,
+        ix: NDArray[np.int64],
+        iy: NDArray[np.int64],
+        records: NDArray[Any],
+        keep: NDArray[np.bool_] | None,
     ) -> None:
         # Group by tile with one sort of a dense tile id: a stable sort of uint16 keys is a
         # radix sort in numpy (linear time), the common case for one chunk. Stable, so each
-        # tile keeps the stream's order.
+        # tile keeps the stream's order. Dropped points get the last id and are cut off.
+        if keep is not None:
+            if not keep.any():
+                return
+            ix, iy = ix[keep], iy[keep]  # the extent of the kept points only
         x0, y0 = int(ix.min()), int(iy.min())
         nx, ny = int(ix.max()) - x0 + 1, int(iy.max()) - y0 + 1
         dense = (ix - x0) * ny + (iy - y0)
         cells = None
-        if nx * ny > max(np.iinfo(np.uint16).max, 4 * ix.shape[0]):
+        if nx * ny > max(np.iinfo(np.uint16).max - 1, 4 * ix.shape[0]):
             cells, dense = np.unique(dense, return_inverse=True)  # sparse tiles: renumber
             dense = dense.reshape(-1)
+        n_kept = dense.shape[0]
+        n_slots = int(dense.max()) + 1
+        if keep is not None:
+            full = np.full(records.shape[0], n_slots, dtype=dense.dtype)  # dropped: sorted last
+            full[keep] = dense
+            dense = full
         if int(dense.max()) <= np.iinfo(np.uint16).max:
             dense = dense.astype(np.uint16)
-        order = np.argsort(dense, kind="stable")
-        counts = np.bincount(dense)
+        order = np.argsort(dense, kind="stable")[:n_kept]
+        counts = np.bincount(dense, minlength=n_slots)[:n_slots]
         ends = np.cumsum(counts)
-        grouped = records[order]
+        grouped = np.take(records, order)  # take: ~6x faster than [] on records
         for slot in np.flatnonzero(counts).tolist():
             cell = slot if cells is None else int(cells[slot])
             tile = (x0 + cell // ny, y0 + cell % ny)
             begin, end = int(ends[slot] - counts[slot]), int(ends[slot])
             self._buffers[tile].append(grouped[begin:end])
-        self._buffered += records.shape[0]
+        self._buffered += n_kept
+        self.n_points += n_kept
         if self._buffered > self._buffer_points:
             self._flush()
 
@@ -510,32 +593,31 @@ class TileStoreWriter:
         n_cells = self.subdivisions**2
         offsets = np.zeros((len(tiles), n_cells + 1), np.int64)
         starts = np.zeros(len(tiles) + 1, np.int64)
-        points = np.lib.format.open_memmap(
+        if self.directory is None and not self._on_disk:
+            points = np.empty(self.n_points, dtype)
+            order = np.empty(self.n_points, np.int32)
+            self._fill(tiles, points, order, offsets, starts)
+            shutil.rmtree(self._staging, ignore_errors=True)
+            return TileStore._in_memory(
+                grid=self.grid,
+                subdivisions=self.subdivisions,
+                tiles=tiles,
+                offsets=offsets,
+                starts=starts,
+                points=points,
+                order=order,
+                metadata=self.metadata,
+            )
+        mapped_points = np.lib.format.open_memmap(
             self._staging / POINTS_FILE, mode="w+", dtype=dtype, shape=(self.n_points,)
         )
-        order = np.lib.format.open_memmap(
+        mapped_order = np.lib.format.open_memmap(
             self._staging / ORDER_FILE, mode="w+", dtype=np.int32, shape=(self.n_points,)
         )
         try:
-            begin = 0
-            for row, tile in enumerate(tiles):
-                parts: list[NDArray[Any]] = []
-                if tile in self._on_disk:
-                    parts.append(np.fromfile(self._part(tile), dtype))
-                parts.extend(self._buffers.pop(tile, []))
-                records = parts[0] if len(parts) == 1 else np.concatenate(parts)
-                end = begin + records.shape[0]
-                sub = self._sub_cells(tile, records["xyz"])
-                points[begin:end] = records
-                order[begin:end] = np.argsort(sub, kind="stable")
-                offsets[row, 1:] = np.cumsum(np.bincount(sub, minlength=n_cells))
-                starts[row + 1] = end
-                self._part(tile).unlink(missing_ok=True)
-                begin = end
-            points.flush()
-            order.flush()
+            self._fill(tiles, mapped_points, mapped_order, offsets, starts)
         finally:
-            del points, order  # close the maps before the folder is renamed
+            del mapped_points, mapped_order  # unmap before the folder is renamed
         np.save(self._staging / KEYS_FILE, np.array(tiles, dtype=np.int64).reshape(-1, 2))
         np.save(self._staging / OFFSETS_FILE, offsets)
         np.save(self._staging / STARTS_FILE, starts)
@@ -548,19 +630,48 @@ class TileStoreWriter:
             "metadata": self.metadata,
         }
         (self._staging / MANIFEST_FILE).write_text(json.dumps(manifest, indent=1), encoding="utf-8")
-        if self.directory.exists():
-            shutil.rmtree(self.directory)
-        self._staging.rename(self.directory)
+        final = self._staging if self.directory is None else self.directory
+        if final != self._staging:
+            if final.exists():
+                shutil.rmtree(final)
+            self._staging.rename(final)
         logger.info("tiled %d points into %d tiles", self.n_points, len(tiles))
-        return TileStore(self.directory)
+        return TileStore(final)
 
-    def _sub_cells(self, tile: TileKey, xyz: NDArray[np.float64]) -> NDArray[np.intp]:
+    def _fill(
+        self,
+        tiles: list[TileKey],
+        points: NDArray[Any],
+        order: NDArray[np.int32],
+        offsets: NDArray[np.int64],
+        starts: NDArray[np.int64],
+    ) -> None:
+        """Write every tile's records, contiguous and in tile order, and its sub-cell index."""
+        n_cells = self.subdivisions**2
+        begin = 0
+        for row, tile in enumerate(tiles):
+            parts: list[NDArray[Any]] = []
+            if tile in self._on_disk:
+                parts.append(np.fromfile(self._part(tile), points.dtype))
+            parts.extend(self._buffers.pop(tile, []))
+            records = parts[0] if len(parts) == 1 else np.concatenate(parts)
+            end = begin + records.shape[0]
+            sub = self._sub_cells(tile, records["xyz"])
+            points[begin:end] = records
+            # uint16 keys (subdivisions <= 256): numpy's stable sort is then a radix sort.
+            order[begin:end] = np.argsort(sub, kind="stable")
+            offsets[row, 1:] = np.cumsum(np.bincount(sub, minlength=n_cells))
+            starts[row + 1] = end
+            self._part(tile).unlink(missing_ok=True)
+            begin = end
+
+    def _sub_cells(self, tile: TileKey, xyz: NDArray[np.float64]) -> NDArray[np.uint16]:
         n_sub = self.subdivisions
         t_x0, t_y0, _, _ = self.grid.tile_bounds(tile)
         sub = self.grid.tile_size_m / n_sub
         sx = np.clip(np.floor((xyz[:, 0] - t_x0) / sub), 0, n_sub - 1).astype(np.intp)
         sy = np.clip(np.floor((xyz[:, 1] - t_y0) / sub), 0, n_sub - 1).astype(np.intp)
-        cells: NDArray[np.intp] = sx * n_sub + sy
+        cells: NDArray[np.uint16] = (sx * n_sub + sy).astype(np.uint16)
         return cells
 
     def abort(self) -> None:
@@ -599,7 +710,7 @@ def build_tile_store(
 
 
 class TemporaryTileStore:
-    """A tile store in a scratch folder, removed on exit.
+    """A tile store for one process, removed on exit: in memory when it fits the buffer.
 
     >>> from semantic3d.core.pointcloud import PointCloud
     >>> cloud = PointCloud.from_arrays(np.array([[0.5, 0.5, 0.0], [1.5, 0.2, 0.0]]))
@@ -617,20 +728,39 @@ class TemporaryTileStore:
         subdivisions: int = DEFAULT_SUBDIVISIONS,
         buffer_points: int = DEFAULT_BUFFER_POINTS,
     ) -> None:
+        with TemporaryTileStore.writer(
+            grid=grid, workdir=workdir, subdivisions=subdivisions, buffer_points=buffer_points
+        ) as writer:
+            for chunk in chunks:
+                writer.add(chunk)
+            self.store = writer.close()
+        self.spilled_points = writer.spilled_points
+
+    @staticmethod
+    def writer(
+        *,
+        grid: TileGrid,
+        workdir: str | Path | None = None,
+        subdivisions: int = DEFAULT_SUBDIVISIONS,
+        buffer_points: int = DEFAULT_BUFFER_POINTS,
+    ) -> TileStoreWriter:
+        """A writer of a temporary store, for callers that bin chunks themselves.
+
+        Wrap what its ``close()`` returns in :meth:`adopt` so that it is removed.
+        """
         if workdir is not None:
             Path(workdir).mkdir(parents=True, exist_ok=True)
-        self._scratch = Path(tempfile.mkdtemp(prefix="semantic3d-tiles-", dir=workdir))
-        try:
-            self.store = build_tile_store(
-                chunks,
-                self._scratch / "store",
-                grid=grid,
-                subdivisions=subdivisions,
-                buffer_points=buffer_points,
-            )
-        except BaseException:
-            shutil.rmtree(self._scratch, ignore_errors=True)
-            raise
+        return TileStoreWriter(
+            None, grid=grid, subdivisions=subdivisions, buffer_points=buffer_points, workdir=workdir
+        )
+
+    @classmethod
+    def adopt(cls, store: TileStore, *, spilled_points: int = 0) -> TemporaryTileStore:
+        """Own ``store`` (from :meth:`writer`): it is removed when the context exits."""
+        temporary = cls.__new__(cls)
+        temporary.store = store
+        temporary.spilled_points = spilled_points
+        return temporary
 
     def __enter__(self) -> TileStore:
         return self.store
@@ -644,5 +774,6 @@ class TemporaryTileStore:
         self.close()
 
     def close(self) -> None:
-        """Remove the scratch folder."""
-        shutil.rmtree(self._scratch, ignore_errors=True)
+        """Remove the store's scratch folder, if it has one."""
+        if self.store.directory is not None:
+            shutil.rmtree(self.store.directory, ignore_errors=True)
