@@ -18,8 +18,6 @@ bit for bit.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
-from typing import Any
 
 import numba
 import numpy as np
@@ -40,9 +38,7 @@ __all__ = [
     "build_pyramid",
     "compute_cells",
     "grid_origin",
-    "load_pyramid",
     "pack_keys",
-    "save_pyramid",
 ]
 
 
@@ -104,34 +100,6 @@ class VoxelPyramid:
         for lower in self.levels[:level]:
             index = lower.parent[index]
         return index
-
-
-_LEVEL_ARRAYS = ("cells", "keys", "xyz", "attributes", "parent")
-
-
-def save_pyramid(path: str | Path, pyramid: VoxelPyramid) -> None:
-    """Write ``pyramid`` to one uncompressed ``.npz`` file (see :func:`load_pyramid`)."""
-    arrays: dict[str, NDArray[Any]] = {
-        "origin": pyramid.origin,
-        "point_voxel": pyramid.point_voxel,
-        "voxel_size_m": np.array([level.voxel_size_m for level in pyramid.levels]),
-    }
-    for number, level in enumerate(pyramid.levels):
-        for name in _LEVEL_ARRAYS:
-            arrays[f"level{number}/{name}"] = getattr(level, name)
-    with Path(path).open("wb") as stream:
-        np.savez(stream, **arrays)  # type: ignore[arg-type]
-
-
-def load_pyramid(path: str | Path) -> VoxelPyramid:
-    """The pyramid :func:`save_pyramid` wrote to ``path``."""
-    with np.load(path) as stored:
-        sizes = stored["voxel_size_m"]
-        levels = tuple(
-            PyramidLevel(float(size), *(stored[f"level{number}/{name}"] for name in _LEVEL_ARRAYS))
-            for number, size in enumerate(sizes)
-        )
-        return VoxelPyramid(stored["origin"], levels, stored["point_voxel"])
 
 
 def build_pyramid(
