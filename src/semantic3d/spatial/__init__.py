@@ -17,33 +17,62 @@ Names are loaded on first use, so importing the package compiles nothing.
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from typing import TYPE_CHECKING
 
-_EXPORTS = {
-    "Bounds": "grid",
-    "TileGrid": "grid",
-    "TileKey": "grid",
-    "ExtentError": "voxels",
-    "compute_cells": "voxels",
-    "grid_origin": "voxels",
-    "pack_keys": "voxels",
-    "TileData": "store",
-    "TilePoints": "store",
-    "TileStore": "store",
-    "TileStoreWriter": "store",
-    "TemporaryTileStore": "store",
-    "build_tile_store": "store",
-    "TileJob": "job",
-    "OccupancyGrid": "occupancy",
-    "open_cache_tiles": "cache_tiles",
-}
+from semantic3d.core.lazy import lazy_exports
 
-__all__ = sorted(_EXPORTS)
+if TYPE_CHECKING:
+    from semantic3d.spatial.cache_tiles import open_cache_tiles
+    from semantic3d.spatial.grid import Bounds, TileGrid, TileKey
+    from semantic3d.spatial.job import TileJob
+    from semantic3d.spatial.occupancy import OccupancyGrid
+    from semantic3d.spatial.store import (
+        TemporaryTileStore,
+        TileData,
+        TilePoints,
+        TileStore,
+        TileStoreWriter,
+        build_tile_store,
+    )
+    from semantic3d.spatial.voxels import ExtentError, compute_cells, grid_origin, pack_keys
 
+__all__ = [
+    "Bounds",
+    "ExtentError",
+    "OccupancyGrid",
+    "TemporaryTileStore",
+    "TileData",
+    "TileGrid",
+    "TileJob",
+    "TileKey",
+    "TilePoints",
+    "TileStore",
+    "TileStoreWriter",
+    "build_tile_store",
+    "compute_cells",
+    "grid_origin",
+    "open_cache_tiles",
+    "pack_keys",
+]
 
-def __getattr__(name: str) -> Any:
-    module = _EXPORTS.get(name)
-    if module is None:
-        raise AttributeError(f"module 'semantic3d.spatial' has no attribute {name!r}")
-    return getattr(importlib.import_module(f"semantic3d.spatial.{module}"), name)
+__getattr__, __dir__ = lazy_exports(
+    __name__,
+    {
+        "Bounds": "semantic3d.spatial.grid",
+        "ExtentError": "semantic3d.spatial.voxels",
+        "OccupancyGrid": "semantic3d.spatial.occupancy",
+        "TemporaryTileStore": "semantic3d.spatial.store",
+        "TileData": "semantic3d.spatial.store",
+        "TileGrid": "semantic3d.spatial.grid",
+        "TileJob": "semantic3d.spatial.job",
+        "TileKey": "semantic3d.spatial.grid",
+        "TilePoints": "semantic3d.spatial.store",
+        "TileStore": "semantic3d.spatial.store",
+        "TileStoreWriter": "semantic3d.spatial.store",
+        "build_tile_store": "semantic3d.spatial.store",
+        "compute_cells": "semantic3d.spatial.voxels",
+        "grid_origin": "semantic3d.spatial.voxels",
+        "open_cache_tiles": "semantic3d.spatial.cache_tiles",
+        "pack_keys": "semantic3d.spatial.voxels",
+    },
+)
