@@ -17,6 +17,7 @@ from semantic3d.baselines.covariance.training import (
     find_labelled_scans,
     fit_model,
 )
+from semantic3d.core.errors import OutputExistsError
 from semantic3d.features import FeatureConfig
 from semantic3d.io.ascii import read_ascii_points
 from semantic3d.io.labels import read_labels
@@ -73,13 +74,22 @@ def test_sidecar_records_time_and_hardware(
     assert describe_hardware().describe().count("cores") == 1
 
 
-def test_default_output_sits_beside_the_scan(
+def test_an_existing_output_is_refused_before_any_work(
     model: CovarianceModel, scene_dir: Path, tmp_path: Path
 ) -> None:
-    scan = tmp_path / "copy.txt"
-    scan.write_bytes((scene_dir / "test.txt").read_bytes())
-    run = predict_scan(model, scan)
-    assert Path(run.labels_path) == tmp_path / "copy.labels"
+    truth = scene_dir / "test.labels"
+    before = truth.read_bytes()
+    with pytest.raises(OutputExistsError, match=r"test\.labels: already exists.*overwrite"):
+        predict_scan(model, scene_dir / "test.txt", out_path=truth)
+    assert truth.read_bytes() == before
+    (tmp_path / "p.labels.json").write_text("{}")
+    with pytest.raises(OutputExistsError, match=r"p\.labels\.json: already exists"):
+        predict_scan(model, scene_dir / "test.txt", out_path=tmp_path / "p.labels")
+    assert not (tmp_path / "p.labels").exists()
+    run = predict_scan(
+        model, scene_dir / "test.txt", out_path=tmp_path / "p.labels", overwrite=True
+    )
+    assert json.loads((tmp_path / "p.labels.json").read_text())["n_points"] == run.n_points
 
 
 def test_a_model_is_tied_to_its_feature_columns(model: CovarianceModel) -> None:

@@ -164,7 +164,9 @@ def test_ctrl_c_exits_130_and_leaves_the_destination_as_it_was(tmp_path: Path) -
     entry = "from semantic3d.cli.app import main; main()"
     command = [sys.executable, "-c", entry, "convert", str(source), str(destination)]
     process = subprocess.Popen(
-        [*command, "--chunk-size", "2000"], stdout=subprocess.PIPE, stderr=subprocess.PIPE
+        [*command, "--chunk-size", "2000", "--overwrite"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
     )
     try:
         deadline = time.monotonic() + 60
@@ -189,3 +191,74 @@ def test_interrupt_inside_a_compiled_kernel_is_an_interrupt() -> None:
         raise SystemError("returned a result with an exception set") from KeyboardInterrupt()
     with pytest.raises(SystemError), guarded():
         raise SystemError("a real bug")
+
+
+@pytest.mark.parametrize(
+    ("output", "existing"),
+    [("out.las", ["out.las"]), ("out.txt", ["out.labels"]), ("out.cache", ["out.cache/x"])],
+)
+def test_an_existing_output_is_refused_unless_overwrite(
+    scan: Path, tmp_path: Path, output: str, existing: list[str]
+) -> None:
+    for name in existing:
+        (tmp_path / name).parent.mkdir(exist_ok=True)
+        (tmp_path / name).write_bytes(b"precious")
+    result = runner.invoke(app, ["convert", str(scan), str(tmp_path / output)])
+    assert result.exit_code == 2
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and "already exists" in lines[0] and "--overwrite" in lines[0]
+    assert all((tmp_path / name).read_bytes() == b"precious" for name in existing)
+    if output != "out.cache":  # a folder that is not a cache is never replaced
+        result = runner.invoke(app, ["convert", str(scan), str(tmp_path / output), "--overwrite"])
+        assert result.exit_code == 0, result.output
+        assert read_points(tmp_path / output).equals(read_points(scan))
+
+
+def test_an_empty_folder_is_not_an_existing_cache(scan: Path, tmp_path: Path) -> None:
+    (tmp_path / "out.cache").mkdir()
+    result = runner.invoke(app, ["convert", str(scan), str(tmp_path / "out.cache")])
+    assert result.exit_code == 0, result.output
+
+
+def test_a_missing_output_folder_is_created(scan: Path, tmp_path: Path) -> None:
+    destination = tmp_path / "out" / "missing-dir" / "y.las"
+    result = runner.invoke(app, ["convert", str(scan), str(destination)])
+    assert result.exit_code == 0, result.output
+    assert read_las(destination).equals(read_points(scan))
+
+
+def test_an_unwritable_output_folder_is_one_line(scan: Path, tmp_path: Path) -> None:
+    (tmp_path / "file").write_text("not a folder")
+    result = runner.invoke(app, ["convert", str(scan), str(tmp_path / "file" / "y.las")])
+    assert result.exit_code == 2, result.output
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error:") and "file" in lines[0]
+    assert "Traceback" not in result.output
+
+
+def test_crs_is_written_to_las(scan: Path, tmp_path: Path) -> None:
+    pytest.importorskip("pyproj")
+    import laspy
+
+    out = tmp_path / "georef.laz"
+    result = runner.invoke(app, ["convert", str(scan), str(out), "--crs", "EPSG:2154"])
+    assert result.exit_code == 0, result.output
+    with laspy.open(out) as reader:
+        assert reader.header.global_encoding.wkt
+        assert reader.header.parse_crs().to_epsg() == 2154
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["out.las", "--crs", "EPSG:99999999"], "expected a coordinate reference system"),
+        (["out.ply", "--crs", "EPSG:2154"], "--crs applies to .las/.laz output"),
+    ],
+)
+def test_bad_crs_is_one_line(scan: Path, tmp_path: Path, args: list[str], message: str) -> None:
+    pytest.importorskip("pyproj")
+    result = runner.invoke(app, ["convert", str(scan), str(tmp_path / args[0]), *args[1:]])
+    assert result.exit_code == 2
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and message in lines[0]
+    assert not (tmp_path / args[0]).exists()

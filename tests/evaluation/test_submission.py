@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import stat
+import struct
+import time
+import tracemalloc
 import zipfile
 from pathlib import Path
 
@@ -95,7 +98,8 @@ def test_wrong_line_count(scans: Scans, tmp_path: Path) -> None:
     members = scans.pred_members()
     members["alpha.labels"] += b"1\n1\n"
     assert _problems(write_zip(tmp_path / "s.zip", members), scans) == (
-        "alpha.labels: expected 120 lines (one per point of the scan), found 122",
+        "alpha.labels: expected 120 lines (one per point of the scan), found more than 121 "
+        "(reading stopped there)",
     )
 
 
@@ -298,3 +302,152 @@ def test_every_problem_is_reported_at_once(scans: Scans, tmp_path: Path) -> None
     )
     message = str(SubmissionError(problems, source="s.zip"))
     assert message.startswith("s.zip: invalid submission, 7 problems:\n  - ")
+
+
+# Archive-index and read limits: bounded in CPU time and memory -----------------------------
+
+
+def _many_entries_zip(
+    path: Path, n_entries: int, *, declared: int | None = None, zip64: bool = False
+) -> Path:
+    """A zip of ``n_entries`` empty stored members, written directly (``writestr`` is slow).
+
+    ``declared``: the member count written into the end record (a forged, smaller one);
+    ``zip64``: add ZIP64 end records holding the counts (the classic record then says 0xFFFF).
+    """
+    local, central = [], []
+    offset = 0
+    for i in range(n_entries):
+        name = b"%07d.labels" % i
+        local.append(struct.pack("<4s5H3L2H", b"PK\x03\x04", 20, 0, 0, 0, 0, 0, 0, 0, len(name), 0))
+        local.append(name)
+        central.append(
+            struct.pack(
+                "<4s6H3L5H2L",
+                b"PK\x01\x02",
+                20,
+                20,
+                0,
+                0,
+                0,
+                0,
+                0,
+                0,
+                0,
+                len(name),
+                0,
+                0,
+                0,
+                0,
+                0,
+                offset,
+            )
+        )
+        central.append(name)
+        offset += 30 + len(name)
+    directory = b"".join(central)
+    count = n_entries if declared is None else declared
+    tail = b""
+    if zip64:
+        at = offset + len(directory)
+        tail = struct.pack(
+            "<4sQ2H2L4Q", b"PK\x06\x06", 44, 45, 45, 0, 0, count, count, len(directory), offset
+        ) + struct.pack("<4sLQL", b"PK\x06\x07", 0, at, 1)
+        count = 0xFFFF
+    end = struct.pack(
+        "<4s4H2LH",
+        b"PK\x05\x06",
+        0,
+        0,
+        min(count, 0xFFFF),
+        min(count, 0xFFFF),
+        len(directory),
+        offset,
+        0,
+    )
+    path.write_bytes(b"".join(local) + directory + tail + end)
+    return path
+
+
+def _bounded_problems(
+    submission: Path, scans: Scans, **kwargs: object
+) -> tuple[tuple[str, ...], float, float]:
+    """The problems, the CPU seconds and the peak traced MB of validating ``submission``."""
+    tracemalloc.start()
+    started = time.process_time()
+    try:
+        problems = _problems(submission, scans, **kwargs)
+        cpu_s = time.process_time() - started
+        peak_mb = tracemalloc.get_traced_memory()[1] / 1e6
+    finally:
+        tracemalloc.stop()
+    return problems, cpu_s, peak_mb
+
+
+@pytest.mark.parametrize(
+    ("declared", "zip64"),
+    [(None, False), (1, False), (None, True)],
+    ids=["count", "forged", "zip64"],
+)
+def test_member_cap_is_checked_before_the_index_is_built(
+    scans: Scans, tmp_path: Path, declared: int | None, zip64: bool
+) -> None:
+    # 100,000 entries: building zipfile's index of them takes ~1.5 s and ~50 MB here
+    # (1 M entries: 15 s CPU, +470 MB); the end record and a bounded walk take milliseconds.
+    path = _many_entries_zip(tmp_path / "many.zip", 100_000, declared=declared, zip64=zip64)
+    problems, cpu_s, peak_mb = _bounded_problems(path, scans)
+    if declared is None:  # the classic end record holds at most 65535
+        count = 100_000 if zip64 else 65_535
+        assert problems == (f"archive holds {count} members, more than the limit of 10000",)
+    else:  # the end record understates the count: the walk stops at the 10,001st entry
+        assert problems == ("archive holds more than 10000 members, more than the limit of 10000",)
+    assert cpu_s < 0.3, f"{cpu_s:.2f} s CPU"
+    assert peak_mb < 12, f"{peak_mb:.1f} MB traced"
+
+
+def test_oversized_central_directory_is_refused_unread(scans: Scans, tmp_path: Path) -> None:
+    path = _many_entries_zip(tmp_path / "many.zip", 20_000, declared=5)
+    limits = SubmissionLimits(max_directory_bytes=100_000)
+    problems, cpu_s, peak_mb = _bounded_problems(path, scans, limits=limits)
+    assert problems == (
+        "central directory of 1200000 bytes, more than the limit of 100000 bytes "
+        "(too many members or overlong names)",
+    )
+    assert cpu_s < 0.1 and peak_mb < 1
+
+
+def test_archives_under_the_cap_still_open(scans: Scans, tmp_path: Path) -> None:
+    path = _many_entries_zip(tmp_path / "many.zip", 50)
+    problems = _problems(path, scans, limits=SubmissionLimits(max_members=50))
+    assert "unexpected file '0000000.labels'" in problems
+
+
+@pytest.mark.parametrize("twin", ["d//beta.labels", "d/./beta.labels", "d\\beta.labels"])
+def test_duplicates_are_found_after_normalising_names(
+    scans: Scans, tmp_path: Path, twin: str
+) -> None:
+    members = {f"d/{name}": data for name, data in scans.pred_members().items()}
+    path = tmp_path / "s.zip"
+    with zipfile.ZipFile(path, "w") as archive:
+        for name, data in members.items():
+            archive.writestr(name, data)
+        archive.writestr(twin, b"1\n")
+    assert _problems(path, scans) == ("'d/beta.labels': appears 2 times in the archive",)
+
+
+def test_reading_stops_one_line_past_the_expected_count(scans: Scans, tmp_path: Path) -> None:
+    # 64 MiB of "1\n" where 120 lines are expected: reading it all (the old behaviour)
+    # inflates and parses every byte, ~0.3 s CPU here (2 GiB: 24 s).
+    members = scans.pred_members()
+    members["alpha.labels"] = b"1\n" * (32 << 20)
+    path = tmp_path / "long.zip"
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED, compresslevel=1) as archive:
+        for name, data in members.items():
+            archive.writestr(name, data)
+    del members
+    problems, cpu_s, _ = _bounded_problems(path, scans)
+    assert problems == (
+        "alpha.labels: expected 120 lines (one per point of the scan), found more than 121 "
+        "(reading stopped there)",
+    )
+    assert cpu_s < 0.1, f"{cpu_s:.2f} s CPU"

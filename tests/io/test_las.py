@@ -8,11 +8,14 @@ import pytest
 from hypothesis import given
 
 from semantic3d.core import DataFormatError, PointCloud
+from semantic3d.io.formats import write_points
 from semantic3d.io.las import (
     ASPRS_BY_LABEL,
     INTENSITY_DIMENSION,
+    INTENSITY_OFFSET,
     LABEL_BY_ASPRS,
     LABEL_DIMENSION,
+    CrsError,
     iter_las,
     open_las_writer,
     read_las,
@@ -245,3 +248,55 @@ def test_ign_sample_survives_to_the_millimetre(shared_data: Path, tmp_path: Path
         assert back.intensity.tolist() == original.intensity.tolist()
         assert np.array_equal(back.rgb, original.rgb)
         assert np.array_equal(back.labels, original.labels)
+
+
+@pytest.mark.parametrize("suffix", SUFFIXES)
+def test_the_wkt_bit_is_set_as_las_1_4_requires(tmp_path: Path, suffix: str) -> None:
+    path = tmp_path / f"scan{suffix}"
+    write_las(path, [random_cloud(10)])
+    with laspy.open(path) as reader:
+        assert reader.header.version == "1.4" and reader.header.point_format.id == 7
+        assert reader.header.global_encoding.wkt
+        assert not any(
+            isinstance(v, laspy.vlrs.known.WktCoordinateSystemVlr) for v in reader.header.vlrs
+        )
+
+
+@pytest.mark.parametrize("crs", ["EPSG:2154", "epsg:2154"])
+def test_a_crs_is_written_as_a_wkt_record(tmp_path: Path, crs: str) -> None:
+    pyproj = pytest.importorskip("pyproj")
+    path = tmp_path / "georef.las"
+    cloud = random_cloud(50, offset=870_000.0)
+    write_las(path, [cloud], crs=crs)
+    with laspy.open(path) as reader:
+        assert reader.header.global_encoding.wkt
+        assert reader.header.parse_crs() == pyproj.CRS.from_epsg(2154)
+    assert read_las(path).equals(cloud)  # the points are untouched
+
+
+def test_an_unknown_crs_is_refused_before_writing(tmp_path: Path) -> None:
+    pytest.importorskip("pyproj")
+    with pytest.raises(
+        CrsError,
+        match=r"expected a coordinate reference system such as EPSG:2154, found 'EPSG:99999999'",
+    ):
+        write_las(tmp_path / "x.las", [random_cloud(5)], crs="EPSG:99999999")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_crs_applies_to_las_only(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match=r"x\.ply: crs applies to LAS/LAZ output only"):
+        write_points(tmp_path / "x.ply", [random_cloud(5)], crs="EPSG:2154")
+
+
+def test_the_standard_intensity_field_is_shifted_and_documented(tmp_path: Path) -> None:
+    cloud = random_cloud(4)
+    cloud.intensity[:] = [-2048, -1, 0, 2047]
+    write_las(tmp_path / "i.las", [cloud])
+    las = laspy.read(tmp_path / "i.las")
+    assert las.intensity.tolist() == [0, 2047, 2048, 4095]  # value + INTENSITY_OFFSET
+    assert las[INTENSITY_DIMENSION].tolist() == [-2048, -1, 0, 2047]
+    assert INTENSITY_OFFSET == 2048
+    assert read_las(tmp_path / "i.las").intensity.tolist() == [-2048, -1, 0, 2047]
+    (dimension,) = [d for d in las.point_format.extra_dimensions if d.name == INTENSITY_DIMENSION]
+    assert dimension.description == "exact; intensity = this + 2048"

@@ -8,6 +8,7 @@ import pytest
 from hypothesis import given
 
 from semantic3d.core import DataFormatError, PointCloud
+from semantic3d.io.formats import estimate_point_count
 from semantic3d.io.ply import (
     COUNT_WIDTH,
     LABEL_PROPERTY,
@@ -135,9 +136,31 @@ def test_truncated_body_is_reported(tmp_path: Path, keep: float) -> None:
     data = path.read_bytes()
     path.write_bytes(data[: int(len(data) * keep)])
     with pytest.raises(
-        DataFormatError, match=r"scan\.ply: expected a readable PLY file, .*end-of-file"
+        DataFormatError,
+        match=r"scan\.ply: the header declares 1,000 vertices, which take at least 32,000 "
+        r"bytes, found .* truncated file",
     ):
         read_ply(path)
+
+
+@pytest.mark.parametrize("storage", ["binary_little_endian", "ascii"])
+def test_a_vertex_count_beyond_the_file_size_is_refused_up_front(
+    tmp_path: Path, storage: str
+) -> None:
+    path = tmp_path / "huge.ply"
+    path.write_bytes(
+        f"ply\nformat {storage} 1.0\nelement vertex 100000000000\nproperty double x\n"
+        "property double y\nproperty double z\nend_header\n".encode()
+        + b"1 2 3\n" * 40
+    )
+    least = "2,400,000,000,000" if storage != "ascii" else "600,000,000,000"
+    message = rf"huge\.ply: the header declares 100,000,000,000 vertices, which take at least {least} bytes, found 240 bytes"
+    with pytest.raises(DataFormatError, match=message):
+        read_ply_header(path)
+    with pytest.raises(DataFormatError, match=message):
+        read_ply(path)
+    with pytest.raises(DataFormatError, match=message):
+        estimate_point_count(path)
 
 
 def test_truncated_header_and_garbage_are_reported(tmp_path: Path) -> None:

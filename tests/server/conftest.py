@@ -163,7 +163,15 @@ def build_harness(settings: Settings, ground_truth_dir: Path) -> Iterator[Harnes
 
     app = create_app(settings)
     state: ServerState = app.state.server
-    install_challenge(state.factory, settings, "toy", ground_truth_dir, title="Toy challenge")
+    # Two scans would hide confusion matrices by default; the toy shows them to test them.
+    install_challenge(
+        state.factory,
+        settings,
+        "toy",
+        ground_truth_dir,
+        title="Toy challenge",
+        show_confusion=True,
+    )
     with TestClient(app) as client:
         yield Harness(client=client, state=state)
 

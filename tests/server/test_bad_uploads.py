@@ -247,11 +247,11 @@ def test_unknown_challenge(harness: Harness) -> None:
     token = harness.user_token("mallory")
     response = harness.client.post(
         "/api/uploads",
-        json={"challenge": "semantic-8", "size_bytes": 10},
+        json={"challenge": "semantic-9", "size_bytes": 10},
         headers={"Authorization": f"Bearer {token}"},
     )
     assert response.status_code == 404
-    assert "no challenge named 'semantic-8'" in response.json()["error"]
+    assert "no challenge named 'semantic-9'" in response.json()["error"]
 
 
 def test_empty_label_files(harness: Harness) -> None:

@@ -61,6 +61,7 @@ def test_register_submit_and_see_the_leaderboard(
         environment(data_dir),
     )
     assert added.returncode == 0, added.stderr
+    _show_confusion_matrices(data_dir, "toy")  # two scans would hide them by default
     preds = tmp_path / "my-predictions.zip"
     preds.write_bytes(submission_zip(noisy_predictions(ground_truth_arrays(), 0.9)))
     server = ServerProcess(
@@ -123,3 +124,15 @@ def test_register_submit_and_see_the_leaderboard(
         server.stop()
     assert (artifacts / "leaderboard.png").stat().st_size > 10_000
     assert not [e for e in errors if "Content Security Policy" in e], errors
+
+
+def _show_confusion_matrices(data_dir: Path, challenge: str) -> None:
+    from semantic3d.server.challenges import set_show_confusion
+    from semantic3d.server.db import create_db_engine, create_session_factory
+    from semantic3d.server.settings import Settings
+
+    engine = create_db_engine(Settings(data_dir=data_dir))
+    try:
+        set_show_confusion(create_session_factory(engine), challenge, show=True)
+    finally:
+        engine.dispose()

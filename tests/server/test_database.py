@@ -34,7 +34,7 @@ def test_migrations_match_the_models(settings: Settings) -> None:
     with engine.connect() as connection:
         assert compare_metadata(MigrationContext.configure(connection), Base.metadata) == []
         version = connection.execute(text("SELECT version_num FROM alembic_version")).scalar()
-    assert version == "0002"
+    assert version == "0003"
     assert set(inspect(engine).get_table_names()) >= {"users", "submissions", "jobs"}
 
 

@@ -76,7 +76,12 @@ def test_every_form_refuses_a_missing_or_forged_csrf_token(harness: Harness) -> 
     submission_id = _evaluated_submission(harness, token)
     with harness.state.factory() as session:
         token_id = session.scalars(select(ApiToken.id)).one()
-    values = {"{token_id}": str(token_id), "{submission_id}": str(submission_id), "{name}": "toy"}
+    values = {
+        "{token_id}": str(token_id),
+        "{submission_id}": str(submission_id),
+        "{name}": "toy",
+        "{upload_id}": "0" * 32,
+    }
     fields = {
         "/register": {"username": "mallory", "password": PASSWORD, "password_again": PASSWORD},
         "/login": {"username": "root", "password": PASSWORD},

@@ -56,7 +56,12 @@ def test_reduced_8_with_its_official_names_and_sizes(tmp_path: Path) -> None:
     harness = next(harness_iter)
     try:
         row = install_challenge(
-            harness.state.factory, settings, "reduced-8", ground_truth, link=True
+            harness.state.factory,
+            settings,
+            "reduced-8",
+            ground_truth,
+            link=True,
+            show_confusion=True,
         )
         assert row.kind == "reduced-8" and row.n_scans == 4
         assert row.n_points == sum(scan.n_points or 0 for scan in challenge.scans)

@@ -13,9 +13,10 @@ import logging
 import typer
 
 from semantic3d import __version__
-from semantic3d.cli.console import run_guarded
+from semantic3d.cli.console import MARKUP_MODE, run_guarded
 
 app = typer.Typer(
+    rich_markup_mode=MARKUP_MODE,
     name="semantic3d",
     help="Semantic classification of huge terrestrial laser scans (semantic3D.net).",
     no_args_is_help=True,

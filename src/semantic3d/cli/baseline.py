@@ -1,7 +1,7 @@
 """``semantic3d baseline covariance train | predict | cv``: the 3D covariance baseline.
 
 Thin shells over :mod:`semantic3d.baselines.covariance`: parse arguments, call the library
-with a progress bar, print a summary.
+with a progress bar, print a summary. scikit-learn is imported when a command runs.
 """
 
 from __future__ import annotations
@@ -9,21 +9,35 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+from enum import StrEnum
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import typer
-from rich.table import Table
 
-from semantic3d.cli.console import console, guarded, progress_bar
+from semantic3d.cli import console as ui
+from semantic3d.cli.console import (
+    MARKUP_MODE,
+    escape,
+    fail,
+    guarded,
+    plural,
+    progress_bar,
+    refuse_existing,
+)
 
 if TYPE_CHECKING:
+    from semantic3d.baselines.common.submission import ScanToLabel
     from semantic3d.baselines.covariance.config import CovarianceConfig
+    from semantic3d.baselines.covariance.predict import PredictionRunSet
 
 baseline_app = typer.Typer(
-    help="Baselines: train, predict and cross-validate.", no_args_is_help=True
+    rich_markup_mode=MARKUP_MODE,
+    help="Baselines: train, predict and cross-validate.",
+    no_args_is_help=True,
 )
 covariance_app = typer.Typer(
+    rich_markup_mode=MARKUP_MODE,
     help="3D covariance baseline (Hackel et al. 2016): multi-scale features + random forest.",
     no_args_is_help=True,
 )
@@ -33,6 +47,17 @@ _CONFIG_HELP = (
     "TOML configuration with the sections features, forest, sampling, prediction, grid_search."
 )
 _SCANS_HELP = "Scan names (NAME of NAME.txt) to use, repeatable or comma-separated; default all."
+_OVERWRITE_HELP = "Replace outputs that already exist (refused otherwise)."
+
+#: Where ``predict`` writes when no --out is given (relative to the working directory).
+DEFAULT_PREDICTIONS = Path("predictions")
+
+
+class ChallengeChoice(StrEnum):
+    """Test challenges whose scans ``predict --data`` can label under official names."""
+
+    SEMANTIC_8 = "semantic-8"
+    REDUCED_8 = "reduced-8"
 
 
 def _scan_names(scans: list[str]) -> list[str]:
@@ -59,9 +84,11 @@ def train(
     seed: int | None = typer.Option(
         None, "--seed", help="Override the seed of the sampling section."
     ),
+    overwrite: bool = typer.Option(False, "--overwrite", help=_OVERWRITE_HELP),
 ) -> None:
     """Train on labelled scans (class-balanced sample) and save the model."""
     with guarded():
+        refuse_existing([out], overwrite=overwrite)
         from semantic3d.baselines.covariance.persistence import save_model
         from semantic3d.baselines.covariance.training import (
             find_labelled_scans,
@@ -79,36 +106,143 @@ def train(
             )
         save_model(model, out)
         counts = ", ".join(f"{v}: {n}" for v, n in sorted(model.n_training_points.items()))
-        console.print(
-            f"trained on {len(labelled)} scans ({counts} points per label value) in "
+        ui.console.print(
+            f"trained on {plural(len(labelled), 'scan')} ({counts} points per label value) in "
             f"{model.training_time_s:.1f} s; {len(model.feature_names)} features; saved {out}"
         )
 
 
 @covariance_app.command()
 def predict(
-    scan: Path = typer.Argument(..., help="Scan to label (x y z intensity r g b lines)."),
+    scan: Path | None = typer.Argument(
+        None, help="One scan to label (x y z intensity r g b lines); or use --data."
+    ),
     model_path: Path = typer.Option(..., "--model", help="Model file from `train`."),
-    out: Path | None = typer.Option(None, "--out", help="Labels file (default SCAN.labels)."),
+    data: Path | None = typer.Option(
+        None, "--data", file_okay=False, help="Label every scan of this folder (NAME.txt)."
+    ),
+    out: Path | None = typer.Option(
+        None,
+        "--out",
+        help="A folder (default ./predictions), a zip archive ready for `submit` (ends in "
+        ".zip) or, for one scan, a .labels file.",
+    ),
+    challenge: ChallengeChoice | None = typer.Option(
+        None,
+        "--challenge",
+        "-c",
+        help="With --data: label the challenge's scans under their official submission "
+        "names (default: every NAME.txt, as NAME.labels).",
+    ),
     workdir: Path | None = typer.Option(None, "--workdir", help="Scratch folder for tiles."),
+    overwrite: bool = typer.Option(False, "--overwrite", help=_OVERWRITE_HELP),
 ) -> None:
-    """Label every point of a scan; writes LABELS and LABELS.json (run time, hardware)."""
+    """Label scans with a trained model: one SCAN, or every scan of --data.
+
+    Writes NAME.labels and a NAME.labels.json run record (run time, hardware) per scan into
+    ./predictions (or --out), never beside the scan, whose NAME.labels is usually its
+    ground truth. `semantic3d evaluate --pred FOLDER` reads the folder as it is. An --out
+    ending in .zip gets only the .labels files (a submission) and ZIP.json the run records.
+    Existing outputs are refused unless --overwrite; Ctrl-C leaves only complete files.
+    """
     with guarded():
-        from semantic3d.baselines.covariance.persistence import load_model
-        from semantic3d.baselines.covariance.predict import predict_scan
+        scans, target = _scans_and_target(scan, data, out, challenge)
+        _predict(
+            scans,
+            target,
+            model_path,
+            workdir=workdir,
+            overwrite=overwrite,
+            challenge=None if challenge is None else challenge.value,
+        )
 
-        model = load_model(model_path)
-        with progress_bar() as bar:
-            task = bar.add_task(f"labelling {scan.name}", total=None)
 
-            def update(done: int, total: int) -> None:
-                bar.update(task, completed=done, total=total or None)
+def _scans_and_target(
+    scan: Path | None, data: Path | None, out: Path | None, challenge: ChallengeChoice | None
+) -> tuple[tuple[ScanToLabel, ...], Path]:
+    """What ``predict`` labels and the folder or zip it writes to."""
+    from semantic3d.baselines.common.submission import ScanToLabel, find_scans_to_label
 
-            run = predict_scan(model, scan, out_path=out, workdir=workdir, progress=update)
-        console.print(
-            f"{run.n_points} points labelled in {run.runtime_s:.1f} s "
-            f"({run.points_per_second:,.0f} points/s{', tiled' if run.tiled else ''}) "
-            f"-> {run.labels_path}"
+    target = out if out is not None else DEFAULT_PREDICTIONS
+    if data is not None:
+        if scan is not None:
+            raise fail("expected one SCAN argument or --data DIR, found both")
+        if target.suffix == ".labels":
+            raise fail(f"{target}: with --data, --out is a folder or a .zip archive")
+        challenge_name = None if challenge is None else challenge.value
+        return find_scans_to_label(data, challenge=challenge_name), target
+    if scan is None:
+        raise fail("expected one SCAN argument or --data DIR, found neither")
+    if challenge is not None:
+        raise fail("--challenge applies to --data DIR (a folder of the challenge's scans)")
+    if not scan.is_file():
+        raise fail(f"{scan}: expected a scan file (x y z intensity r g b lines), found none")
+    if target.suffix == ".labels":  # one scan into a named labels file
+        return (ScanToLabel(scan.stem, scan, target.name),), target.parent
+    return (ScanToLabel(scan.stem, scan, scan.stem + ".labels"),), target
+
+
+def _predict(
+    scans: tuple[ScanToLabel, ...],
+    target: Path,
+    model_path: Path,
+    *,
+    workdir: Path | None,
+    overwrite: bool,
+    challenge: str | None,
+) -> None:
+    from semantic3d.baselines.common.submission import (
+        is_zip_output,
+        planned_outputs,
+        refuse_existing_outputs,
+    )
+    from semantic3d.baselines.covariance.persistence import load_model
+    from semantic3d.baselines.covariance.predict import predict_scans
+
+    refuse_existing_outputs(planned_outputs(target, scans), overwrite=overwrite)
+    model = load_model(model_path)
+    with progress_bar() as bar:
+        task = bar.add_task(f"labelling {plural(len(scans), 'scan')}", total=None)
+
+        def update(index: int, done: int, total: int) -> None:
+            bar.update(
+                task,
+                description=f"labelling {scans[index].name} ({index + 1}/{len(scans)})",
+                completed=done,
+                total=total or None,
+            )
+
+        result = predict_scans(
+            model, scans, target, workdir=workdir, progress=update, overwrite=overwrite
+        )
+        bar.update(task, completed=result.n_points, total=result.n_points)
+    _print_runs(result, zipped=is_zip_output(target), challenge=challenge)
+
+
+def _print_runs(result: PredictionRunSet, *, zipped: bool, challenge: str | None) -> None:
+    for run in result.runs:
+        ui.console.print(
+            f"{escape(Path(run.scan).name)}: {plural(run.n_points, 'point')} labelled in "
+            f"{run.runtime_s:.1f} s ({run.points_per_second:,.0f} points/s"
+            f"{', tiled' if run.tiled else ''}) -> {escape(run.labels_path)}",
+            highlight=False,
+            soft_wrap=True,
+        )
+    if len(result.runs) > 1 or zipped:
+        ui.console.print(
+            f"{plural(len(result.runs), 'scan')}, {plural(result.n_points, 'point')} in "
+            f"{result.runtime_s:.1f} s -> {escape(result.out)}",
+            highlight=False,
+            soft_wrap=True,
+        )
+    if zipped:
+        hardware = result.runs[0].hardware.describe() if result.runs else ""
+        ui.console.print(
+            "submit it with: semantic3d submit --server URL --token TOKEN "
+            f"--challenge {challenge or 'NAME'} --method NAME --runtime-s {result.runtime_s:.0f} "
+            f"--hardware {escape(repr(hardware))} {escape(result.out)}",
+            highlight=False,
+            soft_wrap=True,
         )
 
 
@@ -121,9 +255,15 @@ def cv(
         None, "--seed", help="Override the seed of the sampling section."
     ),
     out: Path | None = typer.Option(None, "--out", help="Write the scores as JSON here."),
+    overwrite: bool = typer.Option(False, "--overwrite", help=_OVERWRITE_HELP),
 ) -> None:
     """Grid search of forest parameters, cross-validated with folds grouped by scan."""
     with guarded():
+        from rich.table import Table
+
+        from semantic3d.baselines.common.submission import write_atomic_text
+
+        refuse_existing([out] if out is not None else [], overwrite=overwrite)
         from semantic3d.baselines.covariance.training import (
             build_training_set,
             find_labelled_scans,
@@ -139,7 +279,7 @@ def cv(
                 config=config,
                 progress=lambda _stage, done, total: bar.update(task, completed=done, total=total),
             )
-        console.print(f"grid search on {training.labels.size} points ...")
+        ui.console.print(f"grid search on {training.labels.size} points ...")
         result = run_grid_search(training, config=config)
         table = Table(title=f"{result.scoring}, {result.n_splits} folds grouped by scan")
         for column in ("n_estimators", "max_depth", "min_samples_leaf", "max_features"):
@@ -157,10 +297,11 @@ def cv(
                 f"{result.std_scores[i]:.4f}",
                 f"{result.fit_time_s[i]:.1f}",
             )
-        console.print(table)
-        console.print(f"best: {result.best_params} ({result.best_score:.4f})")
+        ui.console.print(table)
+        ui.console.print(f"best: {result.best_params} ({result.best_score:.4f})")
         if out is not None:
-            out.write_text(
+            write_atomic_text(
+                out,
                 json.dumps(
                     {
                         "scoring": result.scoring,
@@ -177,7 +318,7 @@ def cv(
                     },
                     indent=2,
                 )
-                + "\n"
+                + "\n",
             )
 
 

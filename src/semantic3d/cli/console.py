@@ -1,70 +1,206 @@
-"""Shared presentation for commands: the rich console, progress bars, error handling."""
+"""Shared presentation for commands: the rich consoles, progress bars, error handling.
+
+Imported by every command module when the ``semantic3d`` app is built, so it stays light:
+``console`` and ``err_console`` (rich consoles for stdout and stderr) are created on first
+use, rich's progress bars when a bar is made, and nothing here imports numpy. Help is
+plain text (``MARKUP_MODE``): typer's rich help imports a Markdown parser and Pygments,
+which alone took longer than the 0.3 s budget of ``semantic3d --help``.
+"""
 
 from __future__ import annotations
 
 import sys
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
+from pathlib import Path
+from typing import TYPE_CHECKING
 
 import typer
-from rich.console import Console
-from rich.progress import (
-    BarColumn,
-    DownloadColumn,
-    MofNCompleteColumn,
-    Progress,
-    ProgressColumn,
-    TaskProgressColumn,
-    TextColumn,
-    TimeElapsedColumn,
-    TimeRemainingColumn,
-    TransferSpeedColumn,
-)
 
-from semantic3d.core.errors import Semantic3DError
+from semantic3d.core.errors import MissingExtraError, Semantic3DError
 
-console = Console()
-err_console = Console(stderr=True)
+if TYPE_CHECKING:
+    from rich.console import Console
+    from rich.progress import Progress
+
+    console: Console
+    err_console: Console
+
+#: ``rich_markup_mode`` of every typer app of the command line: plain help, fast to show.
+MARKUP_MODE = None
+
+
+def __getattr__(name: str) -> Console:
+    # The consoles, made on first use (importing rich.console costs ~40 ms at start-up).
+    if name not in ("console", "err_console"):
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    from rich.console import Console
+
+    made = Console(stderr=name == "err_console")
+    globals()[name] = made
+    return made
+
+
+def escape(text: str) -> str:
+    """``text`` with rich markup escaped, so that ``[las]`` prints as written."""
+    from rich.markup import escape as rich_escape
+
+    return rich_escape(text)
+
+
+#: The extra that installs each optional top-level module, for an import that fails
+#: outside :func:`semantic3d.core.errors.require` (the message then still names it).
+EXTRA_BY_MODULE = {
+    "laspy": "las",
+    "lazrs": "las",
+    "pyproj": "las",
+    "plyfile": "ply",
+    "py7zr": "download",
+    "matplotlib": "viz",
+    "scipy": "sim",
+    "sklearn": "ml",
+    "joblib": "ml",
+    "pgeof": "ml",
+    **dict.fromkeys(
+        (
+            "fastapi",
+            "starlette",
+            "uvicorn",
+            "sqlalchemy",
+            "alembic",
+            "jinja2",
+            "multipart",
+            "argon2",
+            "itsdangerous",
+            "pydantic_settings",
+            "httpx",
+        ),
+        "server",
+    ),
+}
+
+
+def print_error(message: str) -> None:
+    """``message`` as one red line on stderr, printed literally (no rich markup)."""
+    _err_console().print(f"[bold red]error:[/] {escape(message)}", highlight=False, soft_wrap=True)
 
 
 def fail(message: str) -> typer.Exit:
     """Print ``message`` as one red line on stderr; return the exit (code 2) to raise."""
-    err_console.print(f"[bold red]error:[/] {message}", highlight=False, soft_wrap=True)
+    print_error(message)
     return typer.Exit(code=2)
+
+
+def plural(count: int, noun: str, plural_noun: str | None = None) -> str:
+    """``"1 scan"``, ``"2 scans"``.
+
+    >>> plural(1, "scan"), plural(3, "scan"), plural(0, "entry", "entries")
+    ('1 scan', '3 scans', '0 entries')
+    """
+    return f"{count:,} {noun if count == 1 else (plural_noun or noun + 's')}"
+
+
+def _error_message(exc: BaseException) -> str | None:
+    """The one-line message for an error that is the user's environment, not a bug."""
+    if isinstance(exc, Semantic3DError):
+        return str(exc)
+    if isinstance(exc, ModuleNotFoundError) and exc.name:
+        extra = EXTRA_BY_MODULE.get(exc.name.partition(".")[0])
+        if extra is not None:
+            return str(MissingExtraError(exc.name, extra))
+        return None
+    if isinstance(exc, OSError) and exc.strerror:
+        where = f"{exc.filename}: " if exc.filename else ""
+        return f"{where}{exc.strerror[:1].lower()}{exc.strerror[1:]}"
+    return None
 
 
 def run_guarded(app: Callable[..., object]) -> None:
     """Run ``app``, turning package errors into one red line and exit code 2."""
     try:
         app(standalone_mode=True)
-    except Semantic3DError as exc:
-        err_console.print(f"[bold red]error:[/] {exc}", highlight=False, soft_wrap=True)
-        sys.exit(2)
     except KeyboardInterrupt:
-        err_console.print("[yellow]interrupted[/]")
+        _err_console().print("[yellow]interrupted[/]")
         sys.exit(130)
+    except (Semantic3DError, ImportError, OSError) as exc:
+        message = _error_message(exc)
+        if message is None:
+            raise
+        print_error(message)
+        sys.exit(2)
 
 
 @contextmanager
 def guarded() -> Iterator[None]:
     """Inside a command: turn package errors into one red line and exit code 2.
 
-    Ctrl-C while a compiled (numba) kernel runs surfaces as ``SystemError: ... returned a
-    result with an exception set`` caused by the interrupt; it is turned back into the
-    ``KeyboardInterrupt`` it is, so the command ends like any other interrupted one.
+    Also turned into one line: a missing optional package (the message names the extra
+    to install) and an operating-system error on a file (``out/x.las: permission
+    denied``). Ctrl-C while a compiled (numba) kernel runs surfaces as ``SystemError: ...
+    returned a result with an exception set`` caused by the interrupt; it is turned back
+    into the ``KeyboardInterrupt`` it is, so the command ends like any other interrupted
+    one.
     """
     try:
         yield
-    except Semantic3DError as exc:
-        raise fail(str(exc)) from None
+    except (Semantic3DError, ImportError, OSError) as exc:
+        message = _error_message(exc)
+        if message is None:
+            raise
+        raise fail(message) from None
     except SystemError as exc:
         if isinstance(exc.__cause__, KeyboardInterrupt):
             raise KeyboardInterrupt from None
         raise
 
 
+def refuse_existing(paths: Iterable[Path], *, overwrite: bool) -> None:
+    """Exit with one red line when an output exists and ``--overwrite`` was not given.
+
+    Every command checks its outputs before it starts working, so a long run never ends
+    by refusing to write (writers stage their output under a temporary name, so an
+    interrupted run still leaves the old file in place).
+    """
+    if overwrite:
+        return
+    existing = [path for path in paths if path.exists() or path.is_symlink()]
+    if not existing:
+        return
+    more = f" (and {plural(len(existing) - 1, 'other output')})" if len(existing) > 1 else ""
+    raise fail(f"{existing[0]}: already exists{more}; pass --overwrite to replace it")
+
+
+def write_atomically(path: Path, write: Callable[[Path], object]) -> None:
+    """``write(temp)`` to a hidden sibling of ``path``, then rename it into place.
+
+    On any error (Ctrl-C included) the sibling is removed and ``path`` is left as it was.
+    """
+    import uuid
+
+    temp = path.with_name(f".{path.stem}.{uuid.uuid4().hex[:8]}.partial{path.suffix}")
+    try:
+        write(temp)
+        temp.replace(path)
+    except BaseException:
+        temp.unlink(missing_ok=True)
+        raise
+
+
 def progress_bar(*, bytes_: bool = False) -> Progress:
     """A rich progress bar; ``bytes_`` shows sizes and transfer speed instead of counts."""
+    from rich.progress import (
+        BarColumn,
+        DownloadColumn,
+        MofNCompleteColumn,
+        Progress,
+        ProgressColumn,
+        TaskProgressColumn,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+        TransferSpeedColumn,
+    )
+
     columns: tuple[ProgressColumn, ...]
     if bytes_:
         columns = (
@@ -83,4 +219,9 @@ def progress_bar(*, bytes_: bool = False) -> Progress:
             TimeElapsedColumn(),
             TimeRemainingColumn(),
         )
-    return Progress(*columns, console=err_console, transient=False)
+    return Progress(*columns, console=_err_console(), transient=False)
+
+
+def _err_console() -> Console:
+    made = globals().get("err_console")
+    return made if made is not None else __getattr__("err_console")

@@ -13,34 +13,23 @@ from __future__ import annotations
 import shutil
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import numpy as np
 import typer
-from rich.table import Table
 
-from semantic3d.baselines.covariance.config import CovarianceConfig, SamplingConfig
-from semantic3d.baselines.covariance.persistence import save_model
-from semantic3d.baselines.covariance.predict import predict_scan
-from semantic3d.baselines.covariance.training import LabelledScan, train_covariance_model
-from semantic3d.cli.console import console, guarded, progress_bar
-from semantic3d.core.classes import CLASSES
-from semantic3d.datasets.simulator import simulate
-from semantic3d.evaluation import (
-    EvaluationResult,
-    MethodInfo,
-    custom_challenge,
-    evaluate_submission,
-)
-from semantic3d.evaluation.report import write_html, write_json, write_markdown
-from semantic3d.io import iter_points, write_points
-from semantic3d.io.cache import build_cache
-from semantic3d.io.formats import summarize_points
+from semantic3d.cli import console as ui
+from semantic3d.cli.console import guarded, progress_bar
+
+if TYPE_CHECKING:
+    from semantic3d.evaluation.result import EvaluationResult, MethodInfo
 
 DEFAULT_DATA = Path("..") / "shared" / "data"
 
 
 def demo(
-    out: Path = typer.Option(Path("demo-output"), help="Folder for everything the demo writes."),
+    out: Path = typer.Option(
+        Path("demo-output"), help="Folder for everything the demo writes (rewritten on each run)."
+    ),
     data: Path = typer.Option(
         DEFAULT_DATA, help="Real labelled samples (NAME.txt + NAME.labels); skipped when absent."
     ),
@@ -59,10 +48,10 @@ def demo(
         if data.is_dir() and any(data.glob("*/*.txt")):
             _real_samples(data, out / "samples")
         else:
-            console.print(f"[dim]no real samples in {data}: skipping step 1[/]")
+            ui.console.print(f"[dim]no real samples in {data}: skipping step 1[/]")
         simulated = _simulate(out / "simulated", scene=scene, points=points, seed=seed)
         result = _baseline_and_evaluate(simulated, out, seed=seed)
-        console.print(
+        ui.console.print(
             f"\n[bold green]demo finished[/] in {time.perf_counter() - started:.0f} s: "
             f"mIoU {result.scores.mean_iou:.3f}, OA {result.scores.overall_accuracy:.3f}; "
             f"report in {out / 'report.html'}"
@@ -74,7 +63,12 @@ def demo(
 
 
 def _real_samples(data: Path, out: Path) -> None:
-    console.rule("1. real labelled samples")
+    from rich.table import Table
+
+    from semantic3d.io.cache import build_cache
+    from semantic3d.io.formats import iter_points, summarize_points, write_points
+
+    ui.console.rule("1. real labelled samples")
     out.mkdir(parents=True, exist_ok=True)
     table = Table("sample", "points", "classes present", "written")
     for points_path in sorted(data.glob("*/*.txt")):
@@ -89,11 +83,16 @@ def _real_samples(data: Path, out: Path) -> None:
             else " ".join(str(v) for v in range(1, 9) if summary.label_counts[v])
         )
         table.add_row(points_path.stem, f"{summary.n_points:,}", present, ".cache .las .ply")
-    console.print(table)
+    ui.console.print(table)
 
 
 def _simulate(out: Path, *, scene: str, points: int, seed: int) -> list[tuple[Path, Path]]:
-    console.rule(f"2. simulated terrestrial scans ({scene}, 2 stations)")
+    from rich.table import Table
+
+    from semantic3d.core.classes import CLASSES
+    from semantic3d.datasets.simulator import simulate
+
+    ui.console.rule(f"2. simulated terrestrial scans ({scene}, 2 stations)")
     if out.exists():
         shutil.rmtree(out)
     with progress_bar() as bar:
@@ -110,19 +109,27 @@ def _simulate(out: Path, *, scene: str, points: int, seed: int) -> list[tuple[Pa
     for cls in CLASSES:
         table.add_row(cls.name, *[f"{scan.class_counts[cls.value]:,}" for scan in result.scans])
     table.add_row("[bold]all points", *[f"[bold]{scan.n_points:,}" for scan in result.scans])
-    console.print(table)
+    ui.console.print(table)
     return [(scan.points_path, scan.labels_path) for scan in result.scans]
 
 
 def _baseline_and_evaluate(
     scans: list[tuple[Path, Path]], out: Path, *, seed: int
 ) -> EvaluationResult:
+    import numpy as np
+    from rich.table import Table
+
+    from semantic3d.core.classes import CLASSES
+    from semantic3d.evaluation.challenge import custom_challenge
+    from semantic3d.evaluation.evaluate import evaluate_submission
+    from semantic3d.evaluation.report import write_html, write_json, write_markdown
+
     (train_points, train_labels), (test_points, test_labels) = scans[0], scans[1]
-    console.rule("3. covariance baseline")
+    ui.console.rule("3. covariance baseline")
     baseline = out / "baseline"
     baseline.mkdir(parents=True, exist_ok=True)
     method, predicted = _run_baseline(train_points, train_labels, test_points, baseline, seed=seed)
-    console.rule("4. evaluation")
+    ui.console.rule("4. evaluation")
     ground_truth = out / "challenge"
     ground_truth.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(test_labels, ground_truth / test_labels.name)
@@ -139,13 +146,19 @@ def _baseline_and_evaluate(
     table = Table("class", "IoU")
     for cls, iou in zip(CLASSES, result.scores.iou, strict=True):
         table.add_row(cls.name, "absent" if np.isnan(iou) else f"{iou:.3f}")
-    console.print(table)
+    ui.console.print(table)
     return result
 
 
 def _run_baseline(
     train_points: Path, train_labels: Path, test_points: Path, out: Path, *, seed: int
 ) -> tuple[MethodInfo, Path]:
+    from semantic3d.baselines.covariance.config import CovarianceConfig, SamplingConfig
+    from semantic3d.baselines.covariance.persistence import save_model
+    from semantic3d.baselines.covariance.predict import predict_scan
+    from semantic3d.baselines.covariance.training import LabelledScan, train_covariance_model
+    from semantic3d.evaluation.result import MethodInfo
+
     config = CovarianceConfig(sampling=SamplingConfig(seed=seed))
     scans = [LabelledScan(train_points.stem, train_points, train_labels)]
     with progress_bar() as bar:
@@ -164,8 +177,9 @@ def _run_baseline(
             test_points,
             out_path=out / f"{test_points.stem}.labels",
             progress=lambda done, total: bar.update(task, completed=done, total=total),
+            overwrite=True,  # the demo's own folder, rewritten on every run
         )
-    console.print(
+    ui.console.print(
         f"trained on {model.training_scans[0]} in {model.training_time_s:.1f} s; "
         f"labelled {run.n_points:,} points in {run.runtime_s:.1f} s "
         f"({run.points_per_second / 1e3:.0f} k points/s)"

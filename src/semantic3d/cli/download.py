@@ -4,33 +4,34 @@ from __future__ import annotations
 
 from enum import StrEnum
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import typer
-from rich.progress import Progress, TaskID
-from rich.table import Table
 
-from semantic3d.cli.console import console, err_console, guarded, progress_bar
-from semantic3d.datasets import (
-    DownloadProgress,
-    DownloadReport,
-    IncompleteDownloadError,
-    Semantic3D,
-    Split,
-    download_scans,
-    scans,
-)
+from semantic3d.cli import console as ui
+from semantic3d.cli.console import guarded, plural, progress_bar
+
+if TYPE_CHECKING:
+    from rich.progress import Progress, TaskID
+
+    from semantic3d.datasets.download import DownloadProgress, DownloadReport
+    from semantic3d.datasets.registry import Split
+    from semantic3d.datasets.semantic3d import Semantic3D
 
 
 class SplitChoice(StrEnum):
-    """The ``--split`` values: one split or all of them."""
+    """The ``--split`` values: one split of the registry (:class:`Split`, whose values a
+    test keeps equal to these) or all of them."""
 
-    TRAIN = Split.TRAIN.value
-    SEMANTIC_8 = Split.SEMANTIC_8.value
-    REDUCED_8 = Split.REDUCED_8.value
+    TRAIN = "train"
+    SEMANTIC_8 = "semantic-8"
+    REDUCED_8 = "reduced-8"
     ALL = "all"
 
     def as_split(self) -> Split | None:
         """The registry split (``None`` for all)."""
+        from semantic3d.datasets.registry import Split
+
         return None if self is SplitChoice.ALL else Split(self.value)
 
 
@@ -55,6 +56,8 @@ class _ProgressTasks:
 
 
 def _print_status(dataset: Semantic3D, split: Split | None) -> None:
+    from rich.table import Table
+
     table = Table(title=f"semantic3D scans in {dataset.root}")
     for column in ("scan", "split", "points", "labels", "size"):
         table.add_column(column, justify="right" if column == "size" else "left")
@@ -67,15 +70,15 @@ def _print_status(dataset: Semantic3D, split: Split | None) -> None:
             labels,
             f"{files.size_bytes / 1e9:.2f} GB" if files.size_bytes else "",
         )
-    console.print(table)
+    ui.console.print(table)
     missing = dataset.missing(split)
-    console.print(f"{len(dataset.scans(split)) - len(missing)} complete, {len(missing)} missing")
+    ui.console.print(f"{len(dataset.scans(split)) - len(missing)} complete, {len(missing)} missing")
 
 
 def _print_report(report: DownloadReport) -> None:
-    console.print(
-        f"{len(report.downloaded)} scans downloaded, {len(report.skipped)} already present, "
-        f"{len(report.failures)} failed -> {report.folder}"
+    ui.console.print(
+        f"{plural(len(report.downloaded), 'scan')} downloaded, {len(report.skipped)} already "
+        f"present, {len(report.failures)} failed -> {report.folder}"
     )
 
 
@@ -95,10 +98,16 @@ def download(
 ) -> None:
     """Download the benchmark's scans (resumable; files already present are skipped)."""
     with guarded():
+        from semantic3d.core.errors import require
+        from semantic3d.datasets.download import IncompleteDownloadError, download_scans
+        from semantic3d.datasets.registry import scans
+        from semantic3d.datasets.semantic3d import Semantic3D
+
         wanted = split.as_split()
         if check:
             _print_status(Semantic3D(to), wanted)
             return
+        require("py7zr", "download")  # to extract what is downloaded: say so before
         with progress_bar(bytes_=True) as bar:
             try:
                 report = download_scans(
@@ -112,7 +121,7 @@ def download(
             except IncompleteDownloadError as exc:
                 bar.stop()
                 _print_report(exc.report)
-                err_console.print("[dim]run the command again to resume.[/]")
+                ui.err_console.print("[dim]run the command again to resume.[/]")
                 raise
         _print_report(report)
 

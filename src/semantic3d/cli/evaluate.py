@@ -7,36 +7,42 @@ with code 1; other package errors print one red line and exit with code 2.
 
 from __future__ import annotations
 
+import functools
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from enum import StrEnum
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import numpy as np
 import typer
-from rich.markup import escape
-from rich.table import Table
 
-from semantic3d.cli.console import console, err_console, fail, guarded, progress_bar
-from semantic3d.core.classes import CLASSES
-from semantic3d.core.errors import SubmissionError
-from semantic3d.evaluation.agreement import (
-    DEFAULT_MAX_DISTANCE_M,
-    DEFAULT_TILE_SIZE_M,
-    AgreementResult,
-    compute_label_agreement_files,
+from semantic3d.cli import console as ui
+from semantic3d.cli.console import (
+    escape,
+    fail,
+    guarded,
+    plural,
+    progress_bar,
+    refuse_existing,
+    write_atomically,
 )
-from semantic3d.evaluation.challenge import Challenge, custom_challenge, load_challenge
-from semantic3d.evaluation.evaluate import evaluate_submission
-from semantic3d.evaluation.report import (
-    results_table_rows,
-    write_html,
-    write_json,
-    write_markdown,
-)
-from semantic3d.evaluation.result import EvaluationResult, MethodInfo
-from semantic3d.evaluation.stats import ClassStatistics, class_table, compute_class_statistics
-from semantic3d.evaluation.submission import validate_submission
+
+if TYPE_CHECKING:
+    import numpy as np
+    from rich.table import Table
+
+    from semantic3d.core.errors import SubmissionError
+    from semantic3d.evaluation.agreement import AgreementResult
+    from semantic3d.evaluation.challenge import Challenge
+    from semantic3d.evaluation.result import EvaluationResult
+    from semantic3d.evaluation.stats import ClassStatistics
+
+#: The defaults of :mod:`semantic3d.evaluation.agreement`, repeated so that building the
+#: app does not import numpy (a test keeps them equal).
+DEFAULT_MAX_DISTANCE_M = 0.05
+DEFAULT_TILE_SIZE_M = 10.0
+
+_OVERWRITE_HELP = "Replace output files that already exist (refused otherwise)."
 
 INVALID_SUBMISSION_EXIT = 1
 
@@ -56,6 +62,8 @@ _CHALLENGE_HELP = (
 
 
 def _challenge(name: ChallengeName, gt: Path | None, *, need_ground_truth: bool) -> Challenge:
+    from semantic3d.evaluation.challenge import custom_challenge, load_challenge
+
     if name is ChallengeName.CUSTOM:
         if gt is None:
             raise fail("--challenge custom needs --gt DIR (the folder of ground-truth .labels)")
@@ -67,13 +75,13 @@ def _challenge(name: ChallengeName, gt: Path | None, *, need_ground_truth: bool)
 
 def _print_invalid(exc: SubmissionError) -> typer.Exit:
     count = len(exc.problems)
-    err_console.print(
+    ui.err_console.print(
         f"[bold red]invalid submission[/] {escape(exc.source or '')}: "
         f"{count} problem{'s' if count != 1 else ''}",
         highlight=False,
     )
     for problem in exc.problems:
-        err_console.print(f"  [red]-[/] {escape(problem)}", highlight=False, soft_wrap=True)
+        ui.err_console.print(f"  [red]-[/] {escape(problem)}", highlight=False, soft_wrap=True)
     return typer.Exit(code=INVALID_SUBMISSION_EXIT)
 
 
@@ -88,6 +96,9 @@ def validate(
 ) -> None:
     """Check a submission: names, archive safety, values 1..8, line counts (all problems)."""
     with guarded():
+        from semantic3d.core.errors import SubmissionError
+        from semantic3d.evaluation.submission import validate_submission
+
         spec = _challenge(challenge, gt, need_ground_truth=False)
         with progress_bar(bytes_=True) as progress:
             task = progress.add_task(f"checking {submission.name}", total=None)
@@ -100,8 +111,9 @@ def validate(
             except SubmissionError as exc:
                 progress.stop()
                 raise _print_invalid(exc) from None
-        console.print(
-            f"[green]valid[/]: {submission} holds the {len(spec.scans)} files of {spec.name}",
+        ui.console.print(
+            f"[green]valid[/]: {escape(str(submission))} holds the "
+            f"{plural(len(spec.scans), 'file')} of {escape(spec.name)}",
             highlight=False,
         )
 
@@ -116,6 +128,8 @@ def _transposed(title: str, header: Sequence[str], rows: Sequence[Sequence[str]]
     The paper's tables have 12 columns, too wide for a terminal; one column per result
     (or split) and one row per quantity fits 80 characters.
     """
+    from rich.table import Table
+
     table = Table(title=title)
     table.add_column(header[0], style="bold")
     for row in rows:
@@ -126,6 +140,8 @@ def _transposed(title: str, header: Sequence[str], rows: Sequence[Sequence[str]]
 
 
 def _results_table(result: EvaluationResult) -> Table:
+    from semantic3d.evaluation.report import results_table_rows
+
     header, rows = results_table_rows([result])
     return _transposed(f"{result.challenge} (protocol v{result.protocol_version})", header, rows)
 
@@ -151,12 +167,31 @@ def evaluate(
     ),
     method: str | None = typer.Option(None, "--method", help="Method name shown in reports."),
     runtime_s: float | None = typer.Option(
-        None, "--runtime", min=0, help="The method's processing time in seconds (column T)."
+        None, "--runtime-s", min=0, help="The method's processing time in seconds (column T)."
     ),
     hardware: str | None = typer.Option(None, "--hardware", help="What the method ran on."),
+    overwrite: bool = typer.Option(False, "--overwrite", help=_OVERWRITE_HELP),
+    runtime_alias: float | None = typer.Option(None, "--runtime", min=0, hidden=True),
 ) -> None:
-    """Evaluate a submission against ground truth: IoU per class, mIoU, OA."""
+    """Evaluate a submission against ground truth: IoU per class, mIoU, OA.
+
+    A folder submission may hold the NAME.labels.json run records that `baseline ...
+    predict` writes beside its labels; they are not part of the submission. A zip is held
+    to the protocol: label files only.
+    """
     with guarded():
+        from semantic3d.core.classes import CLASSES
+        from semantic3d.core.errors import SubmissionError, require
+        from semantic3d.evaluation.evaluate import evaluate_submission
+        from semantic3d.evaluation.report import write_html, write_json, write_markdown
+        from semantic3d.evaluation.result import MethodInfo
+
+        if runtime_s is None:
+            runtime_s = runtime_alias
+        if report is not None:
+            require("matplotlib", "viz")  # the HTML report's figures; fail before the work
+        outputs = [path for path in (json_path, report, markdown) if path is not None]
+        refuse_existing(outputs, overwrite=overwrite)
         spec = _challenge(challenge, gt, need_ground_truth=True)
         info = None
         if method is not None or runtime_s is not None or hardware is not None:
@@ -173,22 +208,30 @@ def evaluate(
             except SubmissionError as exc:
                 progress.stop()
                 raise _print_invalid(exc) from None
-        console.print(_results_table(result))
+        ui.console.print(_results_table(result))
         absent = [CLASSES[i].name for i in result.scores.absent_indices]
         if absent:
-            console.print(f"absent (left out of mIoU): {', '.join(absent)}", highlight=False)
-        console.print(f"{result.n_points:,} labelled points scored", highlight=False)
+            ui.console.print(f"absent (left out of mIoU): {', '.join(absent)}", highlight=False)
+        ui.console.print(f"{result.n_points:,} labelled points scored", highlight=False)
         for path, writer, what in (
             (json_path, write_json, "JSON"),
             (markdown, write_markdown, "Markdown"),
             (report, write_html, "HTML report"),
         ):
             if path is not None:
-                writer(path, result)
-                console.print(f"wrote {what} to {path}", highlight=False)
+                write_atomically(path, functools.partial(_write_report, writer, result))
+                ui.console.print(f"wrote {what} to {path}", highlight=False)
+
+
+def _write_report(
+    writer: Callable[[Path, EvaluationResult], None], result: EvaluationResult, path: Path
+) -> None:
+    writer(path, result)
 
 
 def _stats_table(statistics: ClassStatistics) -> Table:
+    from semantic3d.evaluation.stats import class_table
+
     header, rows = class_table(statistics)
     shown = [[row[0], row[1], *(f"{int(v):,}" for v in row[2:])] for row in rows]
     return _transposed("points per class", header, shown)
@@ -201,25 +244,37 @@ def stats(
     plot: Path | None = typer.Option(
         None, "--plot", dir_okay=False, help="Write the log-scale bar chart (PNG)."
     ),
+    overwrite: bool = typer.Option(False, "--overwrite", help=_OVERWRITE_HELP),
 ) -> None:
     """Points per class per split (benchmark splits by scan name, else custom)."""
     with guarded():
+        from semantic3d.core.errors import require
+        from semantic3d.evaluation.stats import compute_class_statistics
+
+        if plot is not None:
+            require("matplotlib", "viz")
+        refuse_existing([plot] if plot is not None else [], overwrite=overwrite)
         with progress_bar(bytes_=True) as progress:
             task = progress.add_task(f"counting {folder.name}", total=None)
             statistics = compute_class_statistics(
                 folder,
                 progress=lambda done, total: progress.update(task, completed=done, total=total),
             )
-        console.print(_stats_table(statistics))
+        ui.console.print(_stats_table(statistics))
         if plot is not None:
             from semantic3d.viz.plots import figure_to_png, plot_class_histogram
 
             figure = plot_class_histogram(statistics.class_counts_by_split())
-            plot.write_bytes(figure_to_png(figure))
-            console.print(f"wrote {plot}", highlight=False)
+            png = figure_to_png(figure)
+            write_atomically(plot, lambda temp: temp.write_bytes(png))
+            ui.console.print(f"wrote {plot}", highlight=False)
 
 
 def _agreement_table(result: AgreementResult) -> Table:
+    from rich.table import Table
+
+    from semantic3d.core.classes import CLASSES
+
     # One column per direction, one row per quantity: fits an 80-column terminal.
     table = Table(title=f"label agreement (nearest neighbour within {result.max_distance_m} m)")
     table.add_column("")
@@ -259,6 +314,7 @@ def agreement(
     plot: Path | None = typer.Option(
         None, "--plot", dir_okay=False, help="Write the per-class IoU plot of both directions."
     ),
+    overwrite: bool = typer.Option(False, "--overwrite", help=_OVERWRITE_HELP),
 ) -> None:
     """Label agreement of two overlapping scans: transfer labels A→B and B→A, score them."""
     if not 0 < max_distance < tile_size:
@@ -266,6 +322,13 @@ def agreement(
             f"expected 0 < --max-distance < --tile-size, found {max_distance} and {tile_size}"
         )
     with guarded():
+        from semantic3d.core.errors import require
+        from semantic3d.evaluation.agreement import compute_label_agreement_files
+
+        require("scipy", "sim")  # k-d trees; fail before reading the scans
+        if plot is not None:
+            require("matplotlib", "viz")
+        refuse_existing([plot] if plot is not None else [], overwrite=overwrite)
         with progress_bar() as progress:
             task = progress.add_task(f"reading {a_points.name} and {b_points.name}", total=None)
             result = compute_label_agreement_files(
@@ -279,15 +342,16 @@ def agreement(
                     task, description="matching tiles", completed=done, total=total
                 ),
             )
-        console.print(_agreement_table(result))
+        ui.console.print(_agreement_table(result))
         if plot is not None:
             from semantic3d.viz.plots import figure_to_png, plot_agreement
 
             ious: dict[str, Sequence[float] | np.ndarray] = {
                 d.name: d.scores.iou for d in result.directions
             }
-            plot.write_bytes(figure_to_png(plot_agreement(ious)))
-            console.print(f"wrote {plot}", highlight=False)
+            png = figure_to_png(plot_agreement(ious))
+            write_atomically(plot, lambda temp: temp.write_bytes(png))
+            ui.console.print(f"wrote {plot}", highlight=False)
 
 
 def register(app: typer.Typer) -> None:

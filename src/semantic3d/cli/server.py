@@ -13,7 +13,8 @@ from typing import Any
 
 import typer
 
-from semantic3d.cli.console import console, err_console, guarded, progress_bar
+from semantic3d.cli import console as ui
+from semantic3d.cli.console import MARKUP_MODE, guarded, plural, progress_bar
 
 _DATA_DIR = typer.Option(
     None, "--data-dir", help="Data folder (default: $SEMANTIC3D_DATA_DIR, else ./semantic3d-data)."
@@ -65,6 +66,10 @@ def serve(
 ) -> None:
     """Run the benchmark server (web pages and API) with uvicorn."""
     with guarded():
+        from semantic3d.core.errors import require
+
+        require("fastapi", "server")
+        require("uvicorn", "server")
         import uvicorn
 
         from semantic3d.server.app import create_app
@@ -72,7 +77,7 @@ def serve(
         extra = {} if worker is None else {"embedded_worker": worker}
         settings = _settings(data_dir, database_url, **extra)
         app = create_app(settings)
-        err_console.print(
+        ui.err_console.print(
             f"semantic3d server on http://{host}:{port} · data {settings.data_dir}"
             + (" · embedded worker" if settings.runs_embedded_worker else "")
         )
@@ -99,17 +104,17 @@ def worker(
         runner = Worker(settings, _database(settings))
         if once:
             worked = runner.run_once()
-            console.print("evaluated one submission" if worked else "queue empty")
+            ui.console.print("evaluated one submission" if worked else "queue empty")
             return
         stop = threading.Event()
 
         def _stop(signum: int, frame: object) -> None:
-            err_console.print("stopping: a running job is handed back to the queue")
+            ui.err_console.print("stopping: a running job is handed back to the queue")
             stop.set()
 
         signal.signal(signal.SIGTERM, _stop)
         signal.signal(signal.SIGINT, _stop)
-        err_console.print(f"worker {runner.worker_id} on {settings.data_dir}")
+        ui.err_console.print(f"worker {runner.worker_id} on {settings.data_dir}")
         runner.run(stop)
 
 
@@ -136,7 +141,10 @@ def submit(
 ) -> None:
     """Upload a submission (chunked, resumable: run again to continue) and queue it."""
     with guarded():
-        from semantic3d.evaluation import MethodInfo
+        from semantic3d.core.errors import require
+
+        require("httpx", "server")
+        from semantic3d.evaluation.result import MethodInfo
         from semantic3d.server.client import BenchmarkClient, file_sha256
 
         info = MethodInfo(
@@ -162,7 +170,7 @@ def submit(
             bar.update(task, description="validating", completed=size)
             result = client.finalize(upload_id, method=info, source=predictions.name)
             submission_id = int(result["id"])
-            console.print(
+            ui.console.print(
                 f"submission #{submission_id} queued: {client.server}/submissions/{submission_id}"
             )
             if not (wait or publish):
@@ -177,17 +185,18 @@ def submit(
 
             raise ClientError(f"submission #{submission_id} failed: {final.get('error')}")
         scores = final["scores"]
-        console.print(
+        ui.console.print(
             f"mIoU {100 * scores['mean_iou']:.1f} · OA {100 * scores['overall_accuracy']:.1f} "
             f"({scores['n_points']:,} points)"
         )
         if publish:
             with BenchmarkClient(server, token) as client:
                 client.publish(submission_id)
-            console.print(f"published on {server.rstrip('/')}/challenges/{challenge}")
+            ui.console.print(f"published on {server.rstrip('/')}/challenges/{challenge}")
 
 
 admin_app = typer.Typer(
+    rich_markup_mode=MARKUP_MODE,
     help="Administer a benchmark server (run where its data dir / database is).",
     no_args_is_help=True,
 )
@@ -223,8 +232,9 @@ def add_challenge(
             title=title,
             description=description,
         )
-        console.print(
-            f"challenge {row.name}: {row.n_scans} scans, {row.n_points or 0:,} points installed"
+        ui.console.print(
+            f"challenge {row.name}: {plural(row.n_scans, 'scan')}, "
+            f"{plural(row.n_points or 0, 'point')} installed"
         )
 
 
@@ -250,7 +260,7 @@ def create_user(
 
         settings = _settings(data_dir, database_url)
         user = create(_database(settings), username, password, is_admin=admin)
-        console.print(f"account {user.username} created" + (" (admin)" if admin else ""))
+        ui.console.print(f"account {user.username} created" + (" (admin)" if admin else ""))
 
 
 @admin_app.command("set-admin")
@@ -266,7 +276,7 @@ def set_admin(
 
         settings = _settings(data_dir, database_url)
         user = update(_database(settings), username, is_admin=not revoke)
-        console.print(
+        ui.console.print(
             f"account {user.username} is {'now' if user.is_admin else 'no longer'} an admin"
         )
 
@@ -297,7 +307,7 @@ def list_challenges(
         settings = _settings(data_dir, database_url)
         for row in rows(_database(settings)):
             state = "open" if row.is_open else "closed"
-            typer.echo(f"{row.name}\t{row.kind}\t{row.n_scans} scans\t{state}")
+            typer.echo(f"{row.name}\t{row.kind}\t{plural(row.n_scans, 'scan')}\t{state}")
 
 
 def serve_demo(
@@ -333,18 +343,18 @@ def serve_demo(
             method=method,
         )
         if demo.mean_iou is None or abs(demo.mean_iou - result.scores.mean_iou) > 1e-12:
-            err_console.print(
+            ui.err_console.print(
                 f"[yellow]warning:[/] the server scored mIoU {demo.mean_iou}, "
                 f"the demo {result.scores.mean_iou}"
             )
         url = f"http://{host}:{port}"
-        console.rule("5. benchmark server")
-        console.print(f"leaderboard  {url}/challenges/demo")
-        console.print(f"method page  {url}/submissions/{demo.submission_id}")
+        ui.console.rule("5. benchmark server")
+        ui.console.print(f"leaderboard  {url}/challenges/demo")
+        ui.console.print(f"method page  {url}/submissions/{demo.submission_id}")
         if demo.password is not None:
-            console.print(f"account      demo / {demo.password}")
-            console.print(f"API token    {demo.token}")
-        console.print("[dim]Ctrl-C stops the server[/]")
+            ui.console.print(f"account      demo / {demo.password}")
+            ui.console.print(f"API token    {demo.token}")
+        ui.console.print("[dim]Ctrl-C stops the server[/]")
         uvicorn.run(create_app(settings), host=host, port=port, log_level="warning")
 
 
@@ -363,7 +373,9 @@ def _main() -> None:
     from semantic3d.cli.console import run_guarded
 
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    app = typer.Typer(add_completion=False, pretty_exceptions_enable=False)
+    app = typer.Typer(
+        rich_markup_mode=MARKUP_MODE, add_completion=False, pretty_exceptions_enable=False
+    )
     register(app)
     run_guarded(app)
 

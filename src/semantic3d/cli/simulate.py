@@ -10,17 +10,18 @@ from __future__ import annotations
 from pathlib import Path
 
 import typer
-from rich.table import Table
 
-from semantic3d.cli.console import console, guarded, progress_bar
-from semantic3d.core import CLASSES
-from semantic3d.datasets.simulator import MAX_STATIONS, SceneName, simulate
-from semantic3d.datasets.simulator.scanner import validate_n_points
-from semantic3d.datasets.simulator.scenes import validate_scene_name
-from semantic3d.datasets.simulator.simulation import prepare_output_folder, validate_stations
-from semantic3d.io.chunks import DEFAULT_CHUNK_SIZE
+from semantic3d.cli import console as ui
+from semantic3d.cli.console import guarded, progress_bar, refuse_existing
 
-_SCENES = ", ".join(s.value for s in SceneName)
+#: The simulator's scene names and station limit, repeated so that building the app does
+#: not import the simulator (a test keeps them equal to ``SceneName`` / ``MAX_STATIONS``).
+SCENE_NAMES = ("village", "street", "square", "railway")
+MAX_STATIONS = 3
+#: ``semantic3d.io.chunks.DEFAULT_CHUNK_SIZE`` (kept equal by a test).
+DEFAULT_CHUNK_SIZE = 1 << 20
+
+_SCENES = ", ".join(SCENE_NAMES)
 
 
 def simulate_command(
@@ -38,12 +39,29 @@ def simulate_command(
     chunk_size: int = typer.Option(
         DEFAULT_CHUNK_SIZE, "--chunk-size", min=1, help="Points per streamed chunk."
     ),
+    overwrite: bool = typer.Option(
+        False, "--overwrite", help="Replace files of an earlier simulation in OUT."
+    ),
 ) -> None:
     """Simulate static laser scans: NAME_stationK.txt + .labels per station and NAME.json."""
     with guarded():
+        from semantic3d.datasets.simulator import simulate
+        from semantic3d.datasets.simulator.scanner import validate_n_points
+        from semantic3d.datasets.simulator.scenes import validate_scene_name
+        from semantic3d.datasets.simulator.simulation import (
+            prepare_output_folder,
+            validate_stations,
+        )
+
         scene_name = validate_scene_name(scene)
         validate_n_points(points)
         validate_stations(stations)
+        stems = [f"{scene_name.value}_station{k}" for k in range(1, stations + 1)]
+        refuse_existing(
+            [out / f"{stem}{suffix}" for stem in stems for suffix in (".txt", ".labels")]
+            + [out / f"{scene_name.value}.json"],
+            overwrite=overwrite,
+        )
         prepare_output_folder(out)
         with progress_bar() as bar:
             task = bar.add_task(f"scanning {scene_name.value}", total=None)
@@ -61,6 +79,10 @@ def simulate_command(
                 progress=progress,
             )
             bar.update(task, completed=result.n_points, total=result.n_points)
+    from rich.table import Table
+
+    from semantic3d.core.classes import CLASSES
+
     table = Table(title=f"{result.scene} (seed {result.seed})", title_justify="left")
     table.add_column("station")
     table.add_column("points", justify="right")
@@ -77,8 +99,8 @@ def simulate_command(
             scan.points_path.name,
             ", ".join(f"{name} {share:.0%}" for share, name in shares[:3]),
         )
-    console.print(table)
-    console.print(f"poses and settings: {result.sidecar_path}", highlight=False, soft_wrap=True)
+    ui.console.print(table)
+    ui.console.print(f"poses and settings: {result.sidecar_path}", highlight=False, soft_wrap=True)
 
 
 def register(app: typer.Typer) -> None:

@@ -46,6 +46,10 @@ class MissingExtraError(Semantic3DError, ImportError):
         self.extra = extra
 
 
+class OutputExistsError(Semantic3DError, FileExistsError):
+    """An output file exists and the caller did not ask to overwrite it."""
+
+
 class DownloadError(Semantic3DError, OSError):
     """A download or an archive extraction failed."""
 

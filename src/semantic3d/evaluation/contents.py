@@ -2,10 +2,15 @@
 
 Layout problems are collected, not raised: file names (case-sensitive, with a "did you
 mean" hint), missing, extra, nested and duplicate files; one top-level folder tolerated;
-``__MACOSX/``, ``.DS_Store`` and ``._*`` files ignored. Archive safety: no absolute paths,
+``__MACOSX/``, ``.DS_Store`` and ``._*`` files ignored (in a folder, also the
+``NAME.labels.json`` run records ``predict`` writes beside ``NAME.labels``). Archive safety: no absolute paths,
 ``..`` components or symbolic links; per-member and total uncompressed size caps and a
 compression-ratio cap (zip bombs), enforced on the declared sizes before reading and on
-the bytes actually inflated while streaming. Members are streamed
+the bytes actually inflated while streaming; the member count and the central
+directory's size are checked from the end-of-central-directory record (ZIP64 too) and a
+bounded walk of the directory *before* ``zipfile`` builds its index, so an archive of a
+million empty entries costs milliseconds, not seconds and hundreds of megabytes. Member
+names are compared normalised (``d//a.labels`` is ``d/a.labels``). Members are streamed
 (``zipfile.ZipFile.open``), never extracted.
 """
 
@@ -27,6 +32,7 @@ from typing import cast
 
 from semantic3d.core.errors import SubmissionError
 from semantic3d.evaluation.challenge import Challenge
+from semantic3d.evaluation.zipdirectory import check_zip_directory
 
 _GIB = 1 << 30
 _IGNORED_NAMES = frozenset({".DS_Store", "Thumbs.db", "desktop.ini"})
@@ -57,6 +63,8 @@ class SubmissionLimits:
     max_compression_ratio: float = 2000.0
     ratio_check_min_bytes: int = 1 << 20
     max_members: int = 10_000
+    max_directory_bytes: int = 16 << 20
+    """Largest central directory (10,000 entries with 255-byte names take 3 MB)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -203,6 +211,11 @@ def _zip_member_problems(info: zipfile.ZipInfo, limits: SubmissionLimits) -> lis
     return found
 
 
+def _member_name(stored_name: str) -> str:
+    """A member path normalised: ``\\`` as ``/``, empty and ``.`` components dropped."""
+    return "/".join(p for p in re.split(r"[/\\]", stored_name) if p and p != ".")
+
+
 def _reject_all(entries: dict[str, SubmissionFile]) -> dict[str, SubmissionFile]:
     return {n: SubmissionFile(n, e.stored_name, e.size, None) for n, e in entries.items()}
 
@@ -216,7 +229,8 @@ def _zip_entries(
             f"archive holds {len(infos)} members, more than the limit of {limits.max_members}"
         )
         return {}
-    counts = Counter(info.filename for info in infos)
+    names = (_member_name(info.filename) for info in infos if not info.is_dir())
+    counts = Counter(n for n in names if n and not _is_ignored(tuple(n.split("/"))))
     for name, count in counts.items():
         if count > 1:
             problems.append(f"{name!r}: appears {count} times in the archive")
@@ -229,16 +243,16 @@ def _zip_entries(
         if unsafe is not None:
             problems.append(unsafe)
             continue
-        parts = tuple(p for p in re.split(r"[/\\]", info.filename) if p)
-        if not parts or _is_ignored(parts):
+        name = _member_name(info.filename)
+        parts = tuple(name.split("/"))
+        if not name or _is_ignored(parts):
             continue
-        name = "/".join(parts)
         if name in entries:
             continue  # a duplicate name, reported above
         member_problems = _zip_member_problems(info, limits)
         problems.extend(member_problems)
         total += info.file_size
-        if member_problems or counts[info.filename] > 1:
+        if member_problems or counts[name] > 1:
             entries[name] = SubmissionFile(name, info.filename, info.file_size, None)
             continue
 
@@ -257,6 +271,13 @@ def _zip_entries(
     return entries
 
 
+def _is_run_record(folder: Path, filename: str) -> bool:
+    """``NAME.labels.json`` beside ``NAME.labels``: the run record a baseline's ``predict``
+    writes (run time, hardware). Ignored in a folder, so that predictions evaluate where
+    they were written; a zip submission holds label files only, as the protocol says."""
+    return filename.endswith(".labels.json") and (folder / filename[: -len(".json")]).is_file()
+
+
 def _folder_entries(
     root: Path, limits: SubmissionLimits, problems: list[str]
 ) -> dict[str, SubmissionFile]:
@@ -273,7 +294,7 @@ def _folder_entries(
         for filename in sorted(filenames):
             path = base / filename
             relative = path.relative_to(root)
-            if _is_ignored(relative.parts):
+            if _is_ignored(relative.parts) or _is_run_record(base, filename):
                 continue
             name = relative.as_posix()
             if path.is_symlink():
@@ -331,6 +352,13 @@ def open_submission(
         raise SubmissionError(
             [f"expected a zip archive or a folder of .labels files, found {what}"], source=source
         )
+    directory_problem = check_zip_directory(
+        submission,
+        max_members=limits.max_members,
+        max_directory_bytes=limits.max_directory_bytes,
+    )
+    if directory_problem is not None:
+        raise SubmissionError([directory_problem], source=source)
     try:
         archive = zipfile.ZipFile(submission)
     except (zipfile.BadZipFile, OSError, ValueError) as exc:

@@ -3,7 +3,8 @@
 Every problem is collected into one :class:`~semantic3d.core.errors.SubmissionError`:
 layout and archive-safety problems (:mod:`semantic3d.evaluation.contents`), then content:
 every line an integer 1..8 (CRLF tolerated) and as many lines as the ground truth.
-Memory stays constant whatever the file sizes.
+Memory stays constant whatever the file sizes, and a file is never read past one line
+more than its scan has points.
 """
 
 from __future__ import annotations
@@ -70,11 +71,42 @@ def expected_lines(scan: ChallengeScan) -> int | None:
     return None
 
 
-def line_count_problem(name: str, *, expected: int, found: int) -> str | None:
-    """The message for a line-count mismatch (None when the counts agree)."""
-    if expected == found:
+def line_count_problem(name: str, *, expected: int, found: int, more: bool = False) -> str | None:
+    """The message for a line-count mismatch (None when the counts agree).
+
+    ``more``: the file goes on after ``found`` lines (reading stopped there).
+    """
+    if expected == found and not more:
         return None
+    if more:
+        return (
+            f"{name}: expected {expected} lines (one per point of the scan), found more "
+            f"than {found} (reading stopped there)"
+        )
     return f"{name}: expected {expected} lines (one per point of the scan), found {found}"
+
+
+def _read_lines(
+    stream: LabelStream,
+    budget: int | None,
+    done: int,
+    total: int,
+    progress: ProgressCallback | None,
+) -> bool:
+    """Parse ``stream`` to its end or to ``budget`` lines (and one more to peek).
+
+    Returns whether the stream goes on past the budget; its last line parsed is then the
+    peeked one, not counted in the message.
+    """
+    while True:
+        want = _CHECK_CHUNK if budget is None else min(_CHECK_CHUNK, budget - stream.n_lines)
+        if want <= 0:
+            # One line past the budget was read: is there anything after it?
+            return stream.read(1).shape[0] > 0
+        if stream.read(want).shape[0] < want:
+            return False
+        if progress is not None:
+            progress(done + stream.bytes_read, total)
 
 
 def validate_submission(
@@ -86,8 +118,9 @@ def validate_submission(
 ) -> None:
     """Check a submission against ``challenge``; raise one error listing every problem.
 
-    Reads every prediction file in full (values and line counts) but never the ground
-    truth when the protocol knows the scan's point count.
+    Reads every prediction file (values and line counts), but never past one line more
+    than its scan has points, and never the ground truth when the protocol knows the
+    scan's point count.
 
     Raises:
         SubmissionError: the submission is invalid; ``.problems`` lists every problem.
@@ -103,6 +136,9 @@ def validate_submission(
             if entry is None:
                 continue
             expected = expected_lines(scan)
+            # Never read more than one line past the expected count: a file that is too
+            # long is wrong whatever follows, and may be gigabytes of it.
+            budget = None if expected is None else expected + 1
             try:
                 with entry.open() as handle:
                     stream = LabelStream(
@@ -111,9 +147,7 @@ def validate_submission(
                         low=protocol.prediction_min,
                         high=protocol.prediction_max,
                     )
-                    while stream.read(_CHECK_CHUNK).shape[0] == _CHECK_CHUNK:
-                        if progress is not None:
-                            progress(done + stream.bytes_read, total)
+                    more = _read_lines(stream, budget, done, total, progress)
             except READ_FAILURES as exc:
                 problems.append(read_failure(entry.name, exc))
                 continue
@@ -122,7 +156,8 @@ def validate_submission(
                 progress(done, total)
             problems.extend(stream.problems())
             if expected is not None:
-                mismatch = line_count_problem(entry.name, expected=expected, found=stream.n_lines)
+                found = stream.n_lines - 1 if more else stream.n_lines
+                mismatch = line_count_problem(entry.name, expected=expected, found=found, more=more)
                 if mismatch:
                     problems.append(mismatch)
             logger.info("%s: %d lines checked", entry.name, stream.n_lines)

@@ -108,18 +108,21 @@ def iter_points(
     *,
     chunk_size: int = DEFAULT_CHUNK_SIZE,
     labels_path: str | Path | None = None,
+    sibling_labels: bool = True,
 ) -> Iterator[PointCloud]:
     """Stream any point file in chunks of exactly ``chunk_size`` points (the last may be shorter).
 
     Labels: from ``labels_path`` when given (any format; it must hold one label per
     point), otherwise from the file itself, or for ASCII from the sibling ``.labels``
-    file when it exists.
+    file when it exists and ``sibling_labels`` (a prediction reads none).
     """
     chunk_size = validate_chunk_size(chunk_size)
     path = Path(path)
     kind = detect_format(path)
     if kind is PointFormat.ASCII:
-        labels = labels_path if labels_path is not None else sibling_labels_path(path)
+        labels = labels_path
+        if labels is None and sibling_labels:
+            labels = sibling_labels_path(path)
         return iter_ascii_points(path, chunk_size=chunk_size, labels_path=labels)
     chunks = _iter_embedded(path, kind, chunk_size)
     if labels_path is None:
@@ -152,12 +155,15 @@ def write_points(
     chunks: Iterable[PointCloud],
     *,
     labels_path: str | Path | None = None,
+    crs: object = None,
 ) -> int:
     """Write point chunks in the format of ``path``'s suffix; return the number of points.
 
     ASCII keeps labels in a separate file: ``labels_path``, or by default the sibling
     ``NAME.labels`` when the chunks carry labels. The other formats store labels inside,
-    so ``labels_path`` is rejected for them. Nothing holds the whole cloud.
+    so ``labels_path`` is rejected for them. ``crs`` (e.g. ``"EPSG:2154"``) is written
+    into LAS/LAZ files and rejected for the other formats, which cannot store one.
+    Nothing holds the whole cloud.
     """
     path = Path(path)
     kind = detect_format(path)
@@ -166,6 +172,8 @@ def write_points(
             f"{path}: labels_path applies to ASCII output only; {kind.value} files store "
             "labels inside"
         )
+    if crs is not None and kind not in (PointFormat.LAS, PointFormat.LAZ):
+        raise ValueError(f"{path}: crs applies to LAS/LAZ output only, found {kind.value}")
     if kind is PointFormat.ASCII:
         iterator = iter(chunks)
         first = next(iterator, None)
@@ -190,7 +198,7 @@ def write_points(
         return write_ply(path, chunks)
     from semantic3d.io.las import write_las
 
-    return write_las(path, chunks)
+    return write_las(path, chunks, crs=crs)
 
 
 @dataclass(frozen=True, slots=True)

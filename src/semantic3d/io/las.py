@@ -1,12 +1,17 @@
 """LAS and LAZ point files through laspy (LAZ through its lazrs backend), streamed in chunks.
 
 Files written here are LAS 1.4, point format 7 (x y z, 16-bit intensity and RGB, 8-bit
-classification), and carry two extra-bytes dimensions so that nothing is lost:
+classification), with the WKT bit of the global encoding set (LAS 1.4 requires it for
+point formats 6-10) and, when a ``crs`` is given (``EPSG:2154``, any definition pyproj
+reads; the ``las`` extra installs pyproj), an OGC WKT coordinate-system record. They
+carry two extra-bytes dimensions so that nothing is lost:
 
 - ``semantic3d_intensity`` (int32): the exact signed intensity (Semantic3D files hold
   values such as ``-1515``). The standard uint16 ``intensity`` field gets
   ``clip(value + 2048, 0, 65535)`` (:data:`INTENSITY_OFFSET`) so other software sees an
   ordered, non-negative intensity; the benchmark's range -2048..2047 maps to 0..4095.
+  The shift is kept on purpose (without it every negative intensity would clip to 0);
+  readers of this package take the exact value from ``semantic3d_intensity``.
 - ``label`` (uint8, only when the chunks carry labels): the exact label value. The
   standard ``classification`` field gets the ASPRS code of :data:`ASPRS_BY_LABEL`.
 
@@ -35,12 +40,13 @@ from __future__ import annotations
 from collections.abc import Iterable, Iterator
 from contextlib import suppress
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from semantic3d import __version__
-from semantic3d.core.errors import DataFormatError, MissingExtraError
+from semantic3d.core.errors import DataFormatError, MissingExtraError, Semantic3DError, require
 from semantic3d.core.pointcloud import PointCloud
 from semantic3d.io.chunks import DEFAULT_CHUNK_SIZE, validate_chunk_size
 from semantic3d.io.staging import StagedPath, StagedWriter, write_chunks
@@ -57,9 +63,11 @@ __all__ = [
     "INTENSITY_OFFSET",
     "LABEL_BY_ASPRS",
     "LABEL_DIMENSION",
+    "CrsError",
     "LasPointWriter",
     "iter_las",
     "open_las_writer",
+    "parse_crs",
     "read_las",
     "read_las_header",
     "write_las",
@@ -104,6 +112,28 @@ for _code, _label in {2: 2, 3: 4, 4: 4, 5: 3, 6: 5, 7: 7, 11: 1, 18: 7}.items():
 LABEL_BY_ASPRS.flags.writeable = False
 
 _INT32_MIN, _INT32_MAX = -(2**31), 2**31 - 1
+
+
+class CrsError(Semantic3DError, ValueError):
+    """A coordinate reference system that pyproj cannot read."""
+
+
+def parse_crs(crs: object) -> object:
+    """``crs`` (``"EPSG:2154"``, a WKT string, a ``pyproj.CRS``...) as a ``pyproj.CRS``.
+
+    Raises:
+        CrsError: pyproj does not know it.
+        MissingExtraError: pyproj is not installed (extra ``las``).
+    """
+    pyproj: Any = require("pyproj", "las")
+    try:
+        return pyproj.CRS.from_user_input(crs)
+    except pyproj.exceptions.CRSError as exc:
+        raise CrsError(
+            f"expected a coordinate reference system such as EPSG:2154, found {crs!r} ({exc})"
+        ) from None
+
+
 _READ_ERRORS: tuple[type[BaseException], ...] = (laspy.errors.LaspyException, ValueError)
 
 
@@ -147,9 +177,18 @@ def read_las_header(path: str | Path) -> laspy.LasHeader:
         return reader.header
 
 
+def _laz_backends() -> tuple[laspy.LazBackend, ...]:
+    """Available LAZ backends, lazrs' multi-threaded one first (chunks on all cores)."""
+    available = tuple(laspy.LazBackend.detect_available())
+    parallel = laspy.LazBackend.LazrsParallel
+    return tuple(b for b in available if b is parallel) + tuple(
+        b for b in available if b is not parallel
+    )
+
+
 def _open_reader(path: Path) -> laspy.LasReader:
     try:
-        return laspy.open(path)
+        return laspy.open(path, laz_backend=_laz_backends())
     except _READ_ERRORS + _lazrs_error_types() as exc:
         raise DataFormatError(
             f"expected a LAS/LAZ file, found one laspy cannot read: {exc}", path=str(path)
@@ -208,12 +247,13 @@ class LasPointWriter(StagedWriter):
     removed and the final name is left as it was.
     """
 
-    def __init__(self, path: str | Path) -> None:
+    def __init__(self, path: str | Path, *, crs: object = None) -> None:
         self.path = Path(path)
         self.n_points = 0
         self.compress = self.path.suffix.lower() == ".laz"
         if self.compress:
             _require_lazrs()
+        self.crs = None if crs is None else parse_crs(crs)
         self._has_labels: bool | None = None
         self._writer: laspy.LasWriter | None = None
         self._offsets = np.zeros(3)
@@ -246,9 +286,14 @@ class LasPointWriter(StagedWriter):
         header.offsets = offsets
         header.generating_software = f"semantic3d {__version__}"[:32]
         header.system_identifier = "semantic3d"
+        # LAS 1.4 R15, 2.4: point formats 6-10 describe their CRS in WKT, and the bit must be
+        # set even when no CRS record is present.
+        header.global_encoding.wkt = True
+        if self.crs is not None:
+            header.add_crs(self.crs)
         extra = [
             laspy.ExtraBytesParams(
-                INTENSITY_DIMENSION, np.int32, description="exact signed intensity"
+                INTENSITY_DIMENSION, np.int32, description="exact; intensity = this + 2048"
             )
         ]
         if self._has_labels:
@@ -258,7 +303,11 @@ class LasPointWriter(StagedWriter):
         header.add_extra_dims(extra)
         self._offsets = np.asarray(offsets, dtype=np.float64)
         self._writer = laspy.open(
-            self._staged.temp, mode="w", header=header, do_compress=self.compress
+            self._staged.temp,
+            mode="w",
+            header=header,
+            do_compress=self.compress,
+            laz_backend=_laz_backends(),
         )
         return self._writer
 
@@ -304,14 +353,20 @@ class LasPointWriter(StagedWriter):
         self._staged.discard()
 
 
-def open_las_writer(path: str | Path) -> LasPointWriter:
-    """Open a :class:`LasPointWriter` (LAZ when ``path`` ends in ``.laz``); use it with ``with``."""
-    return LasPointWriter(path)
+def open_las_writer(path: str | Path, *, crs: object = None) -> LasPointWriter:
+    """Open a :class:`LasPointWriter` (LAZ when ``path`` ends in ``.laz``); use it with ``with``.
+
+    ``crs`` (e.g. ``"EPSG:2154"``) is written as a WKT coordinate-system record.
+    """
+    return LasPointWriter(path, crs=crs)
 
 
-def write_las(path: str | Path, chunks: Iterable[PointCloud]) -> int:
-    """Write point chunks to a LAS/LAZ file without holding them all; return the count."""
-    return write_chunks(open_las_writer(path), chunks)
+def write_las(path: str | Path, chunks: Iterable[PointCloud], *, crs: object = None) -> int:
+    """Write point chunks to a LAS/LAZ file without holding them all; return the count.
+
+    ``crs`` (e.g. ``"EPSG:2154"``) is written as a WKT coordinate-system record.
+    """
+    return write_chunks(open_las_writer(path, crs=crs), chunks)
 
 
 class _ChunkDecoder:

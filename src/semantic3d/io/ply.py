@@ -64,6 +64,12 @@ COUNT_WIDTH = 20
 """Characters reserved for the vertex count in the header (any uint64 fits)."""
 
 _MAX_HEADER_BYTES = 1 << 20
+_TYPE_BYTES = {
+    **dict.fromkeys(("char", "uchar", "int8", "uint8"), 1),
+    **dict.fromkeys(("short", "ushort", "int16", "uint16"), 2),
+    **dict.fromkeys(("int", "uint", "float", "int32", "uint32", "float32"), 4),
+    **dict.fromkeys(("double", "float64"), 8),
+}
 _LABEL_NAMES = (LABEL_PROPERTY, "label")
 _INTENSITY_NAMES = ("intensity", "scalar_intensity")
 _PROPERTIES = (
@@ -215,10 +221,34 @@ class PlyHeader:
 
 
 def read_ply_header(path: str | Path) -> PlyHeader:
-    """Parse the header of a PLY file (O(1): the body is not read)."""
+    """Parse the header of a PLY file (O(1): the body is not read).
+
+    The vertex count is checked against the file's size: every vertex takes at least its
+    properties' bytes (binary) or two characters per property (ASCII), so a header that
+    claims more vertices than the file can hold is refused here, before anything is
+    allocated for them.
+    """
     path = Path(path)
+    header, least, body_bytes = _parse_header(path)
+    _check_vertex_count(path, header, least, body_bytes)
+    return header
+
+
+def _check_vertex_count(path: Path, header: PlyHeader, least: int, body_bytes: int) -> None:
+    if least > body_bytes:
+        raise DataFormatError(
+            f"the header declares {header.n_vertices:,} vertices, which take at least "
+            f"{least:,} bytes, found {body_bytes:,} bytes after the header: truncated file "
+            "or corrupt header",
+            path=str(path),
+        )
+
+
+def _parse_header(path: Path) -> tuple[PlyHeader, int, int]:
+    """The header, the least bytes its vertices take and the bytes after the header."""
     storage, n_vertices, properties = "", -1, []
     element = ""
+    vertex_bytes = 0  # the least bytes one vertex takes in a binary body
     with path.open("rb") as stream:
         if stream.readline().rstrip(b"\r\n") != b"ply":
             raise DataFormatError("expected a PLY file (first line 'ply')", path=str(path))
@@ -234,20 +264,31 @@ def read_ply_header(path: str | Path) -> PlyHeader:
                     n_vertices = int(tokens[2])
             elif tokens[:1] == ["property"] and element == "vertex":
                 properties.append(f"{tokens[-1]} {' '.join(tokens[1:-1])}")
+                # a list property takes at least its count (an empty list)
+                kind = tokens[2] if tokens[1:2] == ["list"] and len(tokens) > 2 else tokens[1]
+                vertex_bytes += _TYPE_BYTES.get(kind, 1) if len(tokens) > 2 else 1
             if stream.tell() > _MAX_HEADER_BYTES:
                 break
         else:
             raise DataFormatError("expected 'end_header', found end of file", path=str(path))
+        body_bytes = path.stat().st_size - stream.tell()
     if n_vertices < 0 or not storage:
         raise DataFormatError(
             "expected a 'format' line and an 'element vertex N' line in the header",
             path=str(path),
         )
-    return PlyHeader(storage, n_vertices, tuple(properties))
+    least = n_vertices * (2 * len(properties) if storage == "ascii" else vertex_bytes)
+    return PlyHeader(storage, n_vertices, tuple(properties)), least, body_bytes
 
 
 def _open_vertices(path: Path) -> np.ndarray:
     """The vertex records of ``path``: a read-only memory map for binary files."""
+    try:
+        parsed = _parse_header(path)
+    except DataFormatError:
+        pass  # not a PLY header: plyfile's own message says why, below
+    else:
+        _check_vertex_count(path, *parsed)  # before plyfile allocates the vertices
     try:
         data = plyfile.PlyData.read(str(path), mmap="r")
     except (plyfile.PlyParseError, ValueError, UnicodeDecodeError) as exc:

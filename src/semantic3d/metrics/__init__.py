@@ -3,7 +3,23 @@
 Nothing here reads files; see :mod:`semantic3d.evaluation` for the benchmark protocol.
 """
 
-from semantic3d.metrics.confusion import ConfusionMatrix
-from semantic3d.metrics.scores import Scores, compute_scores
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from semantic3d.core.lazy import lazy_exports
+
+if TYPE_CHECKING:
+    from semantic3d.metrics.confusion import ConfusionMatrix
+    from semantic3d.metrics.scores import Scores, compute_scores
 
 __all__ = ["ConfusionMatrix", "Scores", "compute_scores"]
+
+__getattr__, __dir__ = lazy_exports(
+    __name__,
+    {
+        "ConfusionMatrix": "semantic3d.metrics.confusion",
+        "Scores": "semantic3d.metrics.scores",
+        "compute_scores": "semantic3d.metrics.scores",
+    },
+)

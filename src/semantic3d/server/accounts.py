@@ -3,6 +3,11 @@
 API tokens are ``s3d_`` + 43 URL-safe characters (256 random bits); only their sha256
 is stored, so a leaked database does not leak tokens, and a plain hash suffices because
 the secret has full entropy (no dictionary to attack, unlike passwords).
+
+argon2 takes 64 MiB per hash: registration and login compute at most
+``password_hash_concurrency`` hashes at once in a process (a request waits up to
+``password_hash_wait_s`` for a slot, then gets 503), and registrations are throttled per
+client address, so a burst of sign-ups cannot take the server's memory.
 """
 
 from __future__ import annotations
@@ -11,12 +16,16 @@ import hashlib
 import logging
 import re
 import secrets
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from datetime import datetime, timedelta
+from functools import lru_cache
 
 from argon2 import PasswordHasher
 from argon2.exceptions import InvalidHashError, VerificationError
 from sqlalchemy import and_, delete, func, select, update
-from sqlalchemy.exc import IntegrityError
+from sqlalchemy.exc import IntegrityError, OperationalError
 from sqlalchemy.orm import Session, sessionmaker
 
 from semantic3d.server.db import write_transaction
@@ -24,10 +33,13 @@ from semantic3d.server.errors import (
     AuthenticationError,
     InvalidInputError,
     NotFoundError,
+    ServerError,
+    ServiceUnavailableError,
     ThrottledError,
 )
 from semantic3d.server.models import ApiToken, LoginFailure, User, utc_now
 from semantic3d.server.settings import Settings
+from semantic3d.server.throttle import RateLimiter
 
 logger = logging.getLogger(__name__)
 
@@ -35,6 +47,8 @@ TOKEN_PREFIX = "s3d_"
 USERNAME_PATTERN = re.compile(r"^[a-z0-9][a-z0-9_.-]{2,31}$")
 MIN_PASSWORD_LENGTH = 8
 MAX_PASSWORD_LENGTH = 1024
+TOKEN_LAST_USED_EVERY = timedelta(minutes=1)
+"""A token's "last used" time is written at most this often (not on every request)."""
 
 _hasher = PasswordHasher()
 # Verified against for unknown usernames, so a wrong name costs as long as a wrong password.
@@ -79,13 +93,64 @@ def verify_password(password_hash: str, password: str) -> bool:
         return False
 
 
+@lru_cache(maxsize=8)
+def _hashing_slots(concurrency: int) -> threading.BoundedSemaphore:
+    return threading.BoundedSemaphore(concurrency)
+
+
+@contextmanager
+def hashing_slot(settings: Settings) -> Iterator[None]:
+    """Hold one of the process's ``password_hash_concurrency`` slots for a password hash.
+
+    Raises :class:`ServiceUnavailableError` (503) when none frees up within
+    ``password_hash_wait_s``.
+    """
+    slots = _hashing_slots(settings.password_hash_concurrency)
+    if not slots.acquire(timeout=settings.password_hash_wait_s):
+        raise ServiceUnavailableError(
+            "the server is busy checking passwords; try again in a few seconds",
+            retry_after_s=max(1, round(settings.password_hash_wait_s)),
+        )
+    try:
+        yield
+    finally:
+        slots.release()
+
+
+def register_user(
+    factory: sessionmaker[Session],
+    settings: Settings,
+    limiter: RateLimiter,
+    username: str,
+    password: str,
+    *,
+    address: str,
+) -> User:
+    """Create an account from the registration form: throttled per address, hashing bounded.
+
+    Every attempt from ``address`` counts (``register_max_per_ip`` per
+    ``register_window_s``), checked before any hashing: a throttled attempt costs nothing.
+    """
+    limiter.check_and_hit(address[:64], "registrations from your address")
+    name = validate_username(username)
+    validate_password(password)
+    with hashing_slot(settings):
+        password_hash = hash_password(password)
+    return _insert_user(factory, name, password_hash, is_admin=False)
+
+
 def create_user(
     factory: sessionmaker[Session], username: str, password: str, *, is_admin: bool = False
 ) -> User:
     """Create an account; :class:`InvalidInputError` if the name is taken or invalid."""
     name = validate_username(username)
     validate_password(password)
-    password_hash = hash_password(password)
+    return _insert_user(factory, name, hash_password(password), is_admin=is_admin)
+
+
+def _insert_user(
+    factory: sessionmaker[Session], name: str, password_hash: str, *, is_admin: bool
+) -> User:
     try:
         with write_transaction(factory) as session:
             user = User(username=name, password_hash=password_hash, is_admin=is_admin)
@@ -152,7 +217,13 @@ def authenticate(
         with write_transaction(factory) as session:
             session.execute(delete(LoginFailure).where(LoginFailure.id == attempt_id))
         raise
-    valid = verify_password(user.password_hash if user else _DUMMY_HASH, password)
+    try:
+        with hashing_slot(settings):
+            valid = verify_password(user.password_hash if user else _DUMMY_HASH, password)
+    except ServiceUnavailableError:  # nothing was checked: the attempt does not count
+        with write_transaction(factory) as session:
+            session.execute(delete(LoginFailure).where(LoginFailure.id == attempt_id))
+        raise
     if valid and user is not None:
         with write_transaction(factory) as session:
             session.execute(delete(LoginFailure).where(LoginFailure.username == name))
@@ -229,11 +300,15 @@ def user_for_token(factory: sessionmaker[Session], secret: str) -> User:
         raise AuthenticationError("invalid or revoked API token")
     token, user = row
     now = utc_now()
-    if token.last_used_at is None or now - token.last_used_at > timedelta(minutes=5):
-        with write_transaction(factory) as session:
-            session.execute(
-                update(ApiToken).where(ApiToken.id == token.id).values(last_used_at=now)
-            )
+    if token.last_used_at is None or now - token.last_used_at > TOKEN_LAST_USED_EVERY:
+        # Bookkeeping only: a busy or full database must not turn a valid token away.
+        try:
+            with write_transaction(factory) as session:
+                session.execute(
+                    update(ApiToken).where(ApiToken.id == token.id).values(last_used_at=now)
+                )
+        except (ServerError, OperationalError) as exc:
+            logger.warning("token %s: last use not recorded (%s)", token.prefix, exc)
     return user
 
 

@@ -11,6 +11,7 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, PlainTextResponse, Response
 from fastapi.staticfiles import StaticFiles
+from sqlalchemy.exc import OperationalError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.middleware.sessions import SessionMiddleware
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
@@ -18,10 +19,22 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from semantic3d import __version__
 from semantic3d.core.errors import Semantic3DError, SubmissionError
 from semantic3d.server.challenges import ChallengeCache
-from semantic3d.server.db import create_db_engine, create_session_factory, run_migrations
-from semantic3d.server.errors import ConflictError, ServerError, ThrottledError
+from semantic3d.server.db import (
+    create_db_engine,
+    create_session_factory,
+    database_error,
+    run_migrations,
+)
+from semantic3d.server.errors import (
+    ConflictError,
+    ServerError,
+    ServiceUnavailableError,
+    ThrottledError,
+)
 from semantic3d.server.leaderboard import LeaderboardCache
 from semantic3d.server.routers import accounts, admin, challenges, submissions, uploads
+from semantic3d.server.routers.apidocs import API_DOCS_PATH, OPENAPI_PATH
+from semantic3d.server.routers.apidocs import router as api_docs_router
 from semantic3d.server.settings import Settings, load_settings
 from semantic3d.server.web import STATIC_DIR, ServerState, build_templates, render
 from semantic3d.server.worker import Worker, WorkerThread
@@ -40,17 +53,14 @@ _SECURITY_HEADERS = [
 ]
 
 
-API_DOCS_PATH = "/api/docs"
-# FastAPI's Swagger page loads its script and style from jsDelivr and starts them with an
-# inline script; it shows no user content, so only it gets a policy that allows both.
+# The Swagger page is served from the package (routers/apidocs.py): scripts from 'self'
+# only; Swagger UI sets inline styles, so only this page allows them.
 _API_DOCS_HEADERS = [
     *_SECURITY_HEADERS[:-1],
     (
         b"content-security-policy",
-        b"default-src 'self'; img-src 'self' data: https://fastapi.tiangolo.com; "
-        b"style-src 'self' 'unsafe-inline' https://cdn.jsdelivr.net; "
-        b"script-src 'self' 'unsafe-inline' https://cdn.jsdelivr.net; "
-        b"frame-ancestors 'none'; form-action 'self'",
+        b"default-src 'self'; img-src 'self' data:; style-src 'self' 'unsafe-inline'; "
+        b"script-src 'self'; frame-ancestors 'none'; form-action 'self'",
     ),
 ]
 
@@ -175,9 +185,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         title=settings.site_title,
         version=__version__,
         lifespan=lifespan,
-        docs_url=API_DOCS_PATH,
+        docs_url=None,  # served from the package by routers/apidocs.py (works offline)
         redoc_url=None,
-        openapi_url="/api/openapi.json",
+        openapi_url=OPENAPI_PATH,
     )
     app.state.server = state
     app.add_middleware(
@@ -193,6 +203,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
     for router in (challenges, accounts, uploads, submissions, admin):
         app.include_router(router.router)
+    app.include_router(api_docs_router)
     _install_error_handlers(app)
 
     @app.get("/api/health", tags=["health"])
@@ -249,12 +260,21 @@ def _install_error_handlers(app: FastAPI) -> None:
     async def _server(request: Request, exc: ServerError) -> Response:
         headers = None
         extra: dict[str, Any] = {}
-        if isinstance(exc, ThrottledError):
+        if isinstance(exc, ThrottledError | ServiceUnavailableError):
             headers = {"Retry-After": str(exc.retry_after_s)}
             extra["retry_after_s"] = exc.retry_after_s
         if isinstance(exc, ConflictError) and exc.offset is not None:
             extra["offset"] = exc.offset
         return _error_response(request, exc.status_code, str(exc), headers=headers, extra=extra)
+
+    @app.exception_handler(OperationalError)
+    async def _database(request: Request, exc: OperationalError) -> Response:
+        # A locked (503) or full (507) database outside a write transaction; else a bug.
+        error = database_error(exc)
+        if not isinstance(error, ServerError):
+            logger.error("database error", exc_info=exc)
+            return _error_response(request, 500, "internal server error")
+        return await _server(request, error)
 
     @app.exception_handler(Semantic3DError)
     async def _package(request: Request, exc: Semantic3DError) -> Response:

@@ -5,6 +5,9 @@ submission names from :func:`semantic3d.evaluation.load_challenge`); any other n
 a custom challenge built from every ``*.labels`` file in its folder
 (:func:`semantic3d.evaluation.custom_challenge`). Ground truth is copied (or linked)
 into ``DATA_DIR/ground-truth/<name>/`` and is never served over HTTP.
+
+The two benchmark challenges are listed from the start (a migration records them,
+closed, without ground truth); installing their ground truth completes and opens them.
 """
 
 from __future__ import annotations
@@ -34,6 +37,44 @@ logger = logging.getLogger(__name__)
 
 BENCHMARK_CHALLENGES = ("semantic-8", "reduced-8")
 CHALLENGE_NAME = re.compile(r"^[a-z0-9][a-z0-9_-]{1,63}$")
+
+CONFUSION_MIN_SCANS = 10
+"""Fewest scans for which participants see confusion matrices (unless overridden per challenge).
+
+A participant who predicts one class per scan reads each scan's ground-truth class counts
+off the matrix's columns; with at least this many scans (more than the 8 classes) no single
+submission isolates every scan, and the submission cooldown slows the rest.
+"""
+
+NOT_INSTALLED = "not open yet: ground truth not installed"
+
+
+def accepts_submissions(row: Challenge) -> bool:
+    """True when ``row`` takes new submissions: ground truth installed and open."""
+    return row.ground_truth_installed and row.is_open
+
+
+def submission_status(row: Challenge) -> str:
+    """``"open"``, ``"closed"`` or :data:`NOT_INSTALLED`, as the pages and the API say it."""
+    if not row.ground_truth_installed:
+        return NOT_INSTALLED
+    return "open" if row.is_open else "closed"
+
+
+def install_hint(name: str) -> str:
+    """The command an administrator runs to install the ground truth of ``name``."""
+    return f"semantic3d admin add-challenge {name} --ground-truth DIR"
+
+
+def shows_confusion(row: Challenge) -> bool:
+    """Whether participants (owners included) see confusion matrices of this challenge.
+
+    The challenge's ``show_confusion`` when set, else at least :data:`CONFUSION_MIN_SCANS`
+    scans. Mean IoU, overall accuracy and per-class IoU are always shown.
+    """
+    if row.show_confusion is not None:
+        return row.show_confusion
+    return row.n_scans >= CONFUSION_MIN_SCANS
 
 
 def ground_truth_folder(settings: Settings, name: str) -> Path:
@@ -89,6 +130,7 @@ def install_challenge(
     link: bool = False,
     title: str | None = None,
     description: str = "",
+    show_confusion: bool | None = None,
 ) -> Challenge:
     """Install a challenge from a folder of ground-truth ``.labels`` files.
 
@@ -96,7 +138,9 @@ def install_challenge(
     must hold its test scans' ground truth); any other name a custom challenge. Files are
     hard-linked or copied under the data dir (``link=True``: symbolic links to the
     originals, which must then stay in place). The challenge is built once to check the
-    files before it is recorded; on error nothing is left behind.
+    files before it is recorded; on error nothing is left behind. A benchmark challenge
+    listed without ground truth is completed and opened. ``show_confusion`` overrides the
+    rule of :func:`shows_confusion` (``None``: follow it).
     """
     if not CHALLENGE_NAME.match(name):
         raise InvalidInputError(
@@ -109,6 +153,10 @@ def install_challenge(
     if not files:
         raise InvalidInputError(f"{ground_truth}: expected .labels files, found none")
     settings.prepare_data_dir()
+    with factory() as session:
+        listed = session.scalars(select(Challenge).where(Challenge.name == name)).one_or_none()
+    if listed is not None and listed.ground_truth_installed:
+        raise InvalidInputError(f"challenge {name!r} is already installed")
     target = ground_truth_folder(settings, name)
     if target.exists():
         raise InvalidInputError(f"challenge {name!r} is already installed ({target})")
@@ -122,8 +170,8 @@ def install_challenge(
         row = Challenge(
             name=name,
             kind=name if name in BENCHMARK_CHALLENGES else "custom",
-            title=title or name,
-            description=description,
+            title=title or (listed.title if listed is not None else name),
+            description=description or (listed.description if listed is not None else ""),
         )
         row.scan_points_json = "{}"
         built = build_challenge(settings, row)
@@ -133,8 +181,14 @@ def install_challenge(
         row.protocol_version = str(built.protocol_version)
         row.n_scans = len(built.scans)
         row.n_points = sum(counts.values())
+        row.is_open = True
+        row.ground_truth_installed = True
+        row.show_confusion = show_confusion
         with write_transaction(factory) as session:
-            session.add(row)
+            if listed is None:
+                session.add(row)
+            else:
+                _complete_listed(session, listed.id, row)
     except IntegrityError:
         shutil.rmtree(target, ignore_errors=True)
         raise InvalidInputError(f"challenge {name!r} already exists") from None
@@ -144,6 +198,26 @@ def install_challenge(
         raise
     logger.info("installed challenge %s: %d scans", name, row.n_scans)
     return row
+
+
+def _complete_listed(session: Session, challenge_id: int, installed: Challenge) -> None:
+    """Fill the listed (not yet installed) challenge ``challenge_id`` from ``installed``."""
+    row = session.get(Challenge, challenge_id)
+    if row is None or row.ground_truth_installed:
+        raise InvalidInputError(f"challenge {installed.name!r} already exists")
+    for column in (
+        "title",
+        "description",
+        "protocol_version",
+        "n_scans",
+        "n_points",
+        "scan_points_json",
+        "is_open",
+        "ground_truth_installed",
+        "show_confusion",
+    ):
+        setattr(row, column, getattr(installed, column))
+    installed.id = row.id
 
 
 def _place(source: Path, target: Path, *, link: bool) -> None:
@@ -157,9 +231,11 @@ def _place(source: Path, target: Path, *, link: bool) -> None:
 
 
 def list_challenges(factory: sessionmaker[Session]) -> list[Challenge]:
-    """Every installed challenge, by name."""
+    """Every challenge: the benchmark's own first (semantic-8, reduced-8), then by name."""
     with factory() as session:
-        return list(session.scalars(select(Challenge).order_by(Challenge.name)))
+        rows = list(session.scalars(select(Challenge).order_by(Challenge.name)))
+    order = {name: position for position, name in enumerate(BENCHMARK_CHALLENGES)}
+    return sorted(rows, key=lambda row: (order.get(row.name, len(order)), row.name))
 
 
 def get_challenge(session: Session, name: str) -> Challenge:
@@ -171,6 +247,21 @@ def get_challenge(session: Session, name: str) -> Challenge:
 
 
 def set_challenge_open(factory: sessionmaker[Session], name: str, *, is_open: bool) -> None:
-    """Open or close a challenge to new submissions (its leaderboard stays visible)."""
+    """Open or close a challenge to new submissions (its leaderboard stays visible).
+
+    A challenge whose ground truth is not installed cannot be opened.
+    """
     with write_transaction(factory) as session:
-        get_challenge(session, name).is_open = is_open
+        row = get_challenge(session, name)
+        if is_open and not row.ground_truth_installed:
+            raise InvalidInputError(
+                f"challenge {name!r} is {NOT_INSTALLED}: install it first with "
+                f"`{install_hint(name)}`"
+            )
+        row.is_open = is_open
+
+
+def set_show_confusion(factory: sessionmaker[Session], name: str, *, show: bool | None) -> None:
+    """Show (``True``) or hide (``False``) confusion matrices, or follow the rule (``None``)."""
+    with write_transaction(factory) as session:
+        get_challenge(session, name).show_confusion = show

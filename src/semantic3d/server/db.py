@@ -10,17 +10,24 @@ race-free. On PostgreSQL the same functions take a row lock (``SELECT ... FOR UP
 from __future__ import annotations
 
 import logging
+import os
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from sqlalchemy import Engine, create_engine, event, select, text
+from sqlalchemy import Engine, create_engine, event, make_url, select, text
 from sqlalchemy.engine import Connection
+from sqlalchemy.exc import OperationalError
 from sqlalchemy.orm import Session, sessionmaker
 from sqlalchemy.pool import ConnectionPoolEntry
 
+from semantic3d.server.errors import (
+    InsufficientStorageError,
+    ServerError,
+    ServiceUnavailableError,
+)
 from semantic3d.server.models import User
 from semantic3d.server.settings import Settings
 
@@ -37,19 +44,34 @@ def create_db_engine(settings: Settings) -> Engine:
     url = settings.resolved_database_url
     if url.startswith("sqlite"):
         settings.prepare_data_dir()
+        _create_private_file(make_url(url).database)
+        timeout_s = settings.sqlite_busy_timeout_s
         engine = create_engine(
             url,
-            connect_args={"check_same_thread": False, "timeout": 60},
+            connect_args={"check_same_thread": False, "timeout": timeout_s},
             pool_size=20,
             max_overflow=20,
         )
-        _configure_sqlite(engine)
+        _configure_sqlite(engine, busy_timeout_ms=int(timeout_s * 1000))
     else:
         engine = create_engine(url, pool_size=10, max_overflow=20, pool_pre_ping=True)
     return engine
 
 
-def _configure_sqlite(engine: Engine) -> None:
+def _create_private_file(database: str | None) -> None:
+    """Create the SQLite file readable by its owner only (its WAL files inherit the mode)."""
+    if not database or database == ":memory:" or database.startswith("file:"):
+        return
+    path = Path(database)
+    try:
+        os.close(os.open(path, os.O_WRONLY | os.O_CREAT, 0o600))
+        if path.stat().st_mode & 0o077:
+            path.chmod(0o600)
+    except OSError:  # a read-only or foreign file: SQLite itself will say what is wrong
+        logger.warning("could not make %s private (mode 0600)", path)
+
+
+def _configure_sqlite(engine: Engine, *, busy_timeout_ms: int) -> None:
     @event.listens_for(engine, "connect")
     def _on_connect(dbapi_connection: Any, record: ConnectionPoolEntry) -> None:
         # Take transaction control away from the driver: we emit BEGIN ourselves.
@@ -58,7 +80,7 @@ def _configure_sqlite(engine: Engine) -> None:
         cursor.execute("PRAGMA journal_mode=WAL")
         cursor.execute("PRAGMA synchronous=FULL")
         cursor.execute("PRAGMA foreign_keys=ON")
-        cursor.execute("PRAGMA busy_timeout=60000")
+        cursor.execute(f"PRAGMA busy_timeout={busy_timeout_ms}")
         cursor.close()
 
     @event.listens_for(engine, "begin")
@@ -81,13 +103,35 @@ def write_transaction(factory: sessionmaker[Session]) -> Iterator[Session]:
     :func:`lock_user`. Commits on success, rolls back on error.
     """
     with factory() as session:
-        session.connection(execution_options={_IMMEDIATE: True})
         try:
+            session.connection(execution_options={_IMMEDIATE: True})
             yield session
             session.commit()
+        except OperationalError as exc:
+            session.rollback()
+            raise database_error(exc) from exc
         except BaseException:
             session.rollback()
             raise
+
+
+def database_error(exc: OperationalError) -> ServerError | OperationalError:
+    """A locked or full database as the error to answer with (503, 507), else ``exc``.
+
+    SQLite answers "database is locked" once its busy timeout has passed and "database
+    or disk is full" when its disk is; both pass by themselves, so the client is told to
+    come back rather than shown an internal error.
+    """
+    message = str(exc.orig if exc.orig is not None else exc).lower()
+    if "locked" in message or "busy" in message:
+        return ServiceUnavailableError(
+            "the database is busy; try again in a few seconds", retry_after_s=5
+        )
+    if "disk is full" in message or "no space left" in message:
+        return InsufficientStorageError(
+            "the server's disk is full; nothing was changed, try again later"
+        )
+    return exc
 
 
 def lock_user(session: Session, user_id: int) -> User:

@@ -68,3 +68,25 @@ class ThrottledError(ServerError, PermissionError):
     def __init__(self, message: str, *, retry_after_s: int) -> None:
         super().__init__(message)
         self.retry_after_s = retry_after_s
+
+
+class RequestTimeoutError(ServerError):
+    """A request body stopped arriving for longer than the read timeout (408)."""
+
+    status_code = 408
+
+
+class ServiceUnavailableError(ServerError, RuntimeError):
+    """The server is too busy now (503); ``retry_after_s`` says when to try again."""
+
+    status_code = 503
+
+    def __init__(self, message: str, *, retry_after_s: int) -> None:
+        super().__init__(message)
+        self.retry_after_s = retry_after_s
+
+
+class InsufficientStorageError(ServerError):
+    """The server's disk has too little free space for the request (507)."""
+
+    status_code = 507

@@ -22,6 +22,7 @@ from sqlalchemy import (
     String,
     Text,
     text,
+    true,
 )
 from sqlalchemy.engine import Dialect
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
@@ -127,6 +128,14 @@ class Challenge(Base):
     scan_points_json: Mapped[str] = mapped_column(Text, default="{}")
     is_open: Mapped[bool] = mapped_column(Boolean, default=True)
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utc_now)
+    # False for the benchmark's own challenges until an administrator installs their hidden
+    # ground truth: listed (with the paper's reference results) but closed to submissions.
+    ground_truth_installed: Mapped[bool] = mapped_column(
+        Boolean, default=True, server_default=true()
+    )
+    # Whether participants see the confusion matrix: None follows the scan-count rule of
+    # :func:`semantic3d.server.challenges.shows_confusion`, True/False overrides it.
+    show_confusion: Mapped[bool | None] = mapped_column(Boolean, nullable=True)
 
 
 class UploadSession(Base):

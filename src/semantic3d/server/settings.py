@@ -56,6 +56,20 @@ class Settings(BaseSettings):
         default=72.0, ge=0, description="Hours between two submissions to a challenge."
     )
 
+    min_free_bytes: int = Field(
+        default=512 * MIB,
+        ge=0,
+        description="Free disk space kept on the data folder: bytes that would eat into it "
+        "are refused (507) before they are received, so the database can always write.",
+    )
+    upload_read_timeout_s: float = Field(
+        default=60.0, gt=0, description="A PUT whose body stalls this long is cut off (408)."
+    )
+    max_rejected_uploads: int = Field(
+        default=10, ge=1, description="Invalid submissions per account per window, then 429."
+    )
+    rejected_upload_window_s: int = Field(default=3600, gt=0)
+
     max_member_bytes: int = Field(
         default=4 * GIB, gt=0, description="Largest label file inside a zip, once inflated."
     )
@@ -82,6 +96,19 @@ class Settings(BaseSettings):
         default=100, ge=1, description="Failed logins per account, all addresses."
     )
     login_window_s: int = Field(default=15 * 60, gt=0)
+    register_max_per_ip: int = Field(
+        default=10, ge=1, description="Registration attempts per client address per window."
+    )
+    register_window_s: int = Field(default=3600, gt=0)
+    password_hash_concurrency: int = Field(
+        default=2, ge=1, description="Password hashes computed at once (argon2: 64 MiB each)."
+    )
+    password_hash_wait_s: float = Field(
+        default=10.0, gt=0, description="Longest wait for a hashing slot, then 503."
+    )
+    sqlite_busy_timeout_s: float = Field(
+        default=60.0, gt=0, description="Wait for SQLite's write lock, then 503."
+    )
 
     leaderboard_cache_s: float = Field(default=2.0, ge=0)
 
@@ -130,10 +157,15 @@ class Settings(BaseSettings):
         return self.is_sqlite if self.embedded_worker is None else self.embedded_worker
 
     def prepare_data_dir(self) -> None:
-        """Create the data folders (private to the server's user)."""
-        for folder in (self.data_dir, self.uploads_dir, self.submissions_dir):
-            folder.mkdir(parents=True, exist_ok=True)
-        self.ground_truth_dir.mkdir(mode=0o700, exist_ok=True)
+        """Create the data folders, private to the server's user (mode 0700)."""
+        folders = (self.data_dir, self.uploads_dir, self.submissions_dir, self.ground_truth_dir)
+        for folder in folders:
+            folder.mkdir(mode=0o700, parents=True, exist_ok=True)
+            try:
+                if folder.stat().st_mode & 0o077:
+                    folder.chmod(0o700)
+            except OSError:  # not ours to change (a shared mount): leave it
+                pass
 
     def resolved_secret_key(self) -> str:
         """:attr:`secret_key`, or the key stored in ``DATA_DIR/secret_key`` (created once)."""

@@ -23,7 +23,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from semantic3d.core.errors import SubmissionError
 from semantic3d.evaluation import EvaluationResult, MethodInfo, validate_submission
-from semantic3d.server.challenges import ChallengeCache, get_challenge
+from semantic3d.server.challenges import NOT_INSTALLED, ChallengeCache, get_challenge
 from semantic3d.server.db import lock_user, write_transaction
 from semantic3d.server.errors import (
     InvalidInputError,
@@ -126,12 +126,15 @@ def check_upload_allowed(
     """Refuse, before any byte is sent, an upload that could never be finalized.
 
     An upload session lives ``upload_session_ttl_s``; if the account's cooldown on the
-    challenge ends later than that, the upload would expire first. (One in flight is not
+    challenge ends later than that, the upload would expire first. A challenge whose
+    ground truth is not installed takes no uploads. (One in flight is not
     checked here: that evaluation may well finish while the upload runs.)
     """
     now = utc_now()
     with factory() as session:
         row = get_challenge(session, challenge)
+        if not row.ground_truth_installed:
+            raise InvalidInputError(f"challenge {challenge!r}: submissions are {NOT_INSTALLED}")
         next_allowed = next_submission_at(session, settings, user_id=user_id, challenge_id=row.id)
     if next_allowed is None:
         return
@@ -308,8 +311,14 @@ def result_of(submission: Submission) -> EvaluationResult | None:
     return EvaluationResult.from_dict(json.loads(submission.result_json))
 
 
-def submission_dict(submission: Submission, *, owner: bool) -> dict[str, Any]:
-    """JSON view of a submission; errors only for its owner, per-scan scores never."""
+def submission_dict(
+    submission: Submission, *, owner: bool, confusion: bool = False
+) -> dict[str, Any]:
+    """JSON view of a submission; errors only for its owner, per-scan scores never.
+
+    ``confusion=False`` leaves the confusion matrix out (``null``): the challenge's policy
+    (:func:`semantic3d.server.challenges.shows_confusion`) decides who sees it.
+    """
     job = submission.job
     data: dict[str, Any] = {
         "id": submission.id,
@@ -336,7 +345,7 @@ def submission_dict(submission: Submission, *, owner: bool) -> dict[str, Any]:
         data["error"] = submission.error
         data["attempts"] = job.attempts
     if submission.mean_iou is not None:
-        result = result_of(submission)
+        result = result_of(submission) if confusion else None
         data["scores"] = {
             "mean_iou": submission.mean_iou,
             "overall_accuracy": submission.overall_accuracy,

@@ -5,26 +5,35 @@ offset the server reports -> finalize. The bytes received so far *are* the size 
 ``uploads/<id>.part``: a chunk must start exactly there (append only, so no gaps), an
 interrupted chunk keeps its correct prefix, and the client resumes from the reported
 offset, even after a server restart. An exclusive ``flock`` on the part file keeps two
-concurrent writers out. The sha256 is computed while bytes arrive when they arrive in
-order in this process, else by re-reading the file when the upload is finalized.
+concurrent writers out (and a deletion out of a finalize); a body that stalls for
+``upload_read_timeout_s`` is cut off, so a dead client cannot hold the lock. The sha256
+is computed while bytes arrive when they arrive in order in this process, else by
+re-reading the file when the upload is finalized.
+
+Disk space: bytes are accepted only while the data folder keeps ``min_free_bytes`` free
+after them (else 507, before any byte is read), so the database can always write and the
+server never wedges on a full disk. Deleting removes the file first and records the
+deletion after, so freeing space never depends on writing to the database.
 """
 
 from __future__ import annotations
 
 import asyncio
+import errno
 import fcntl
 import hashlib
 import logging
 import os
 import re
+import shutil
 import threading
 import unicodedata
 import uuid
 from collections.abc import AsyncIterator, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from dataclasses import dataclass
-from datetime import timedelta
+from datetime import datetime, timedelta
 from pathlib import Path
 from typing import Any, BinaryIO
 
@@ -33,7 +42,14 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from semantic3d.server.challenges import get_challenge
 from semantic3d.server.db import lock_user, write_transaction
-from semantic3d.server.errors import ConflictError, InvalidInputError, NotFoundError, TooLargeError
+from semantic3d.server.errors import (
+    ConflictError,
+    InsufficientStorageError,
+    InvalidInputError,
+    NotFoundError,
+    RequestTimeoutError,
+    TooLargeError,
+)
 from semantic3d.server.models import UploadSession, utc_now
 from semantic3d.server.settings import Settings
 
@@ -53,6 +69,8 @@ class UploadState:
     received_bytes: int
     filename: str
     sha256: str | None
+    created_at: datetime | None = None
+    expires_at: datetime | None = None
 
     @property
     def complete(self) -> bool:
@@ -69,6 +87,8 @@ class UploadState:
             "filename": self.filename,
             "sha256": self.sha256,
             "complete": self.complete,
+            "created_at": self.created_at.isoformat() if self.created_at else None,
+            "expires_at": self.expires_at.isoformat() if self.expires_at else None,
         }
 
 
@@ -100,7 +120,24 @@ def _state(settings: Settings, row: UploadSession, challenge: str) -> UploadStat
         received_bytes=received_bytes(settings, row.id),
         filename=row.filename,
         sha256=row.sha256,
+        created_at=row.created_at,
+        expires_at=row.expires_at,
     )
+
+
+def check_free_space(settings: Settings, n_bytes: int) -> None:
+    """Raise :class:`InsufficientStorageError` unless ``n_bytes`` more leave the margin free.
+
+    The margin is ``settings.min_free_bytes`` on the data folder's file system.
+    """
+    folder = settings.uploads_dir if settings.uploads_dir.is_dir() else settings.data_dir
+    free = shutil.disk_usage(folder).free
+    if free - n_bytes < settings.min_free_bytes:
+        raise InsufficientStorageError(
+            f"not enough free disk space on the server for {n_bytes} more bytes "
+            f"(it keeps {settings.min_free_bytes} bytes free); nothing was stored, try "
+            "again later"
+        )
 
 
 def create_upload(
@@ -154,8 +191,11 @@ def create_upload(
         if n_open is not None and n_open >= settings.max_open_uploads:
             raise ConflictError(
                 f"you have {n_open} unfinished uploads (at most {settings.max_open_uploads}): "
-                "finish or delete one first"
+                "finish or delete one first (GET /api/uploads lists them; the account page "
+                "has delete buttons)"
             )
+        settings.prepare_data_dir()
+        check_free_space(settings, size_bytes)
         row = UploadSession(
             id=uuid.uuid4().hex,
             user_id=user_id,
@@ -166,7 +206,6 @@ def create_upload(
             created_at=now,
             expires_at=now + timedelta(seconds=settings.upload_session_ttl_s),
         )
-        settings.prepare_data_dir()
         part_path(settings, row.id).touch(mode=0o600)
         session.add(row)
     logger.info("upload %s opened: %d bytes for %s", row.id, size_bytes, challenge)
@@ -182,6 +221,19 @@ def get_upload(
         return _state(settings, row, row.challenge.name)
 
 
+def list_uploads(
+    factory: sessionmaker[Session], settings: Settings, *, user_id: int
+) -> list[UploadState]:
+    """The caller's open (unexpired) uploads, oldest first."""
+    with factory() as session:
+        rows = session.scalars(
+            select(UploadSession)
+            .where(UploadSession.user_id == user_id, UploadSession.expires_at > utc_now())
+            .order_by(UploadSession.created_at)
+        )
+        return [_state(settings, row, row.challenge.name) for row in rows]
+
+
 def owned_upload(session: Session, upload_id: str, user_id: int) -> UploadSession:
     row = (
         session.get(UploadSession, upload_id) if re.fullmatch(r"[0-9a-f]{32}", upload_id) else None
@@ -192,24 +244,56 @@ def owned_upload(session: Session, upload_id: str, user_id: int) -> UploadSessio
 
 
 def delete_upload(factory: sessionmaker[Session], settings: Settings, upload_id: str) -> None:
-    """Forget an upload session and its bytes."""
+    """Forget an upload session and its bytes: the file first, then the database row.
+
+    The caller holds the upload's lock or knows nobody else uses it (see
+    :func:`cancel_upload`). Removing the file first frees its space even when the database
+    cannot be written (a full disk); the row left behind then points at no data and is
+    removed by a later deletion or the expiry sweep.
+    """
+    _remove_part(settings, upload_id)
     with write_transaction(factory) as session:
         row = session.get(UploadSession, upload_id)
         if row is not None:
             session.delete(row)
-    part_path(settings, upload_id).unlink(missing_ok=True)
+
+
+def _remove_part(settings: Settings, upload_id: str) -> None:
+    """Delete the part file, emptying it first: an open handle (the lock's) would else keep
+    its blocks allocated until closed, after the database write that needs them."""
+    path = part_path(settings, upload_id)
+    with suppress(FileNotFoundError):
+        os.truncate(path, 0)
+    path.unlink(missing_ok=True)
     _HASHES.forget(upload_id)
 
 
+def cancel_upload(
+    factory: sessionmaker[Session], settings: Settings, upload_id: str, *, user_id: int
+) -> None:
+    """Abandon the caller's upload; :class:`ConflictError` while a request writes or finalizes it."""
+    with factory() as session:
+        owned_upload(session, upload_id, user_id)
+    try:
+        with locked_part(settings, upload_id, doing="deleted"):
+            delete_upload(factory, settings, upload_id)
+    except NotFoundError:  # its data is already gone: forget the session too
+        delete_upload(factory, settings, upload_id)
+
+
 @contextmanager
-def locked_part(settings: Settings, upload_id: str) -> Iterator[BinaryIO]:
+def locked_part(
+    settings: Settings, upload_id: str, *, doing: str = "written to"
+) -> Iterator[BinaryIO]:
     """The upload's part file, opened for update under an exclusive lock.
 
-    One request at a time writes to or finalizes an upload: others get
+    One request at a time writes to, finalizes or deletes an upload: others get
     :class:`ConflictError` at once (the lock is ``flock``, so it holds across processes).
     """
     try:
-        handle = part_path(settings, upload_id).open("r+b")
+        # Unbuffered: a failed write leaves nothing pending that a later flush could put
+        # in the wrong place.
+        handle = part_path(settings, upload_id).open("r+b", buffering=0)
     except FileNotFoundError:
         raise NotFoundError(f"upload {upload_id}: its data is gone; start a new upload") from None
     with handle:
@@ -217,7 +301,9 @@ def locked_part(settings: Settings, upload_id: str) -> Iterator[BinaryIO]:
             fcntl.flock(handle.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             raise ConflictError(
-                f"upload {upload_id}: another request is writing or finalizing it", offset=None
+                f"upload {upload_id} cannot be {doing} now: another request is writing or "
+                "finalizing it; try again when it has finished",
+                offset=None,
             ) from None
         yield handle
 
@@ -233,9 +319,12 @@ async def write_chunk(
     """Append a request body at ``offset`` to the upload; returns the new received size.
 
     Raises :class:`ConflictError` (carrying the right offset) if ``offset`` is not where
-    the upload stands or another request is writing to it, and :class:`TooLargeError`
-    if the body would pass the declared size or the chunk limit (the part file is cut
-    back to ``offset``). A dropped connection keeps the bytes that arrived.
+    the upload stands or another request is writing to it, :class:`TooLargeError` if the
+    body would pass the declared size or the chunk limit (the part file is cut back to
+    ``offset``), :class:`InsufficientStorageError` if the disk cannot take the chunk and
+    keep ``min_free_bytes`` free (checked before reading; a write that fails for space is
+    cut back too) and :class:`RequestTimeoutError` when no byte came for
+    ``upload_read_timeout_s``. A dropped or stalled connection keeps the bytes that arrived.
     """
     limit = upload.size_bytes - offset
     if content_length is not None and content_length > settings.max_chunk_bytes:
@@ -247,6 +336,8 @@ async def write_chunk(
             f"chunk of {content_length} bytes at offset {offset} passes the declared size "
             f"{upload.size_bytes}"
         )
+    cap = min(limit, settings.max_chunk_bytes)
+    check_free_space(settings, cap if content_length is None else content_length)
     with locked_part(settings, upload.id) as handle:
         current = os.fstat(handle.fileno()).st_size
         if offset != current:
@@ -256,59 +347,94 @@ async def write_chunk(
                 offset=current,
             )
         handle.seek(offset)
-        cap = min(limit, settings.max_chunk_bytes)
         # Double buffering: while one block is written and hashed on a thread (both release
         # the GIL), the event loop keeps receiving the next one.
         queued = 0  # bytes handed to the writer, written or in progress
         pending: Future[None] | None = None
         buffer = bytearray()
+        loop = asyncio.get_running_loop()
+        read_timeout_s = settings.upload_read_timeout_s
 
         def hand_over(block: bytearray) -> Future[None]:
             return _WRITER.submit(_append, handle, upload.id, offset + queued, block)
 
         try:
-            async for piece in chunks:
-                if queued + len(buffer) + len(piece) > cap:
-                    raise TooLargeError(
-                        f"chunk at offset {offset} passes the declared size "
-                        f"{upload.size_bytes} or the {settings.max_chunk_bytes}-byte chunk limit"
-                    )
-                buffer += piece
-                if len(buffer) >= _WRITE_BUFFER:
-                    if pending is not None:
-                        await asyncio.wrap_future(pending)
+            # The deadline moves with the data, at most every ``step`` s (rescheduling a
+            # timer for each 64 KiB piece would cost ~8 us x 16 k pieces per GiB).
+            step = min(1.0, read_timeout_s / 4)
+            moved = loop.time()
+            async with asyncio.timeout(read_timeout_s) as deadline:
+                async for piece in chunks:
+                    now = loop.time()
+                    if now - moved > step:
+                        deadline.reschedule(now + read_timeout_s)
+                        moved = now
+                    if queued + len(buffer) + len(piece) > cap:
+                        raise TooLargeError(
+                            f"chunk at offset {offset} passes the declared size "
+                            f"{upload.size_bytes} or the {settings.max_chunk_bytes}-byte "
+                            "chunk limit"
+                        )
+                    buffer += piece
+                    if len(buffer) >= _WRITE_BUFFER:
+                        if pending is not None:
+                            await asyncio.wrap_future(pending)
+                        pending = hand_over(buffer)
+                        queued += len(buffer)
+                        buffer = bytearray()
+                if pending is not None:
+                    await asyncio.wrap_future(pending)
+                if buffer:
                     pending = hand_over(buffer)
                     queued += len(buffer)
                     buffer = bytearray()
+                    await asyncio.wrap_future(pending)
+        except TimeoutError:
+            _keep_received(handle, upload.id, offset + queued, pending, buffer)
+            raise RequestTimeoutError(
+                f"upload {upload.id}: no data for {read_timeout_s:g} s; the bytes received "
+                "are kept, resume from GET /api/uploads/{id}"
+            ) from None
+        except (TooLargeError, OSError) as exc:
             if pending is not None:
-                await asyncio.wrap_future(pending)
-            if buffer:
-                pending = hand_over(buffer)
-                queued += len(buffer)
-                buffer = bytearray()
-                await asyncio.wrap_future(pending)
-        except TooLargeError:
-            if pending is not None:
-                pending.result()
+                _wait_quietly(pending)
             handle.truncate(offset)
             _HASHES.forget(upload.id)
+            if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
+                raise InsufficientStorageError(
+                    f"the server's disk filled up while receiving the chunk at offset "
+                    f"{offset}; nothing of it was kept, try again later"
+                ) from None
             raise
         except BaseException:
             # Dropped connection or cancellation: keep the bytes that did arrive.
-            if pending is not None:
-                pending.result()
-            if buffer:
-                _append(handle, upload.id, offset + queued, buffer)
+            _keep_received(handle, upload.id, offset + queued, pending, buffer)
             raise
         return offset + queued
+
+
+def _wait_quietly(pending: Future[None]) -> None:
+    with suppress(OSError):
+        pending.result()
+
+
+def _keep_received(
+    handle: Any, upload_id: str, position: int, pending: Future[None] | None, buffer: bytearray
+) -> None:
+    """Flush what arrived before the body stopped (``position``: where ``buffer`` goes)."""
+    if pending is not None:
+        pending.result()
+    if buffer:
+        _append(handle, upload_id, position, buffer)
 
 
 _WRITER = ThreadPoolExecutor(max_workers=8, thread_name_prefix="semantic3d-upload")
 
 
 def _append(handle: Any, upload_id: str, position: int, block: bytearray) -> None:
-    handle.write(block)
-    handle.flush()
+    view = memoryview(block)
+    while view:
+        view = view[handle.write(view) :]
     _HASHES.update(upload_id, position, block)
 
 
@@ -363,26 +489,42 @@ def upload_sha256(settings: Settings, upload_id: str, size: int) -> str:
 
 
 def expire_uploads(factory: sessionmaker[Session], settings: Settings) -> int:
-    """Delete expired upload sessions and orphaned part files; returns how many went."""
+    """Delete expired upload sessions and orphaned part files; returns how many went.
+
+    Files go first and the database rows after, so the sweep frees space even when the
+    database cannot be written; an upload being written or finalized right now (locked)
+    is left for the next sweep.
+    """
     now = utc_now()
-    with write_transaction(factory) as session:
+    with factory() as session:
         expired = list(
-            session.scalars(select(UploadSession).where(UploadSession.expires_at <= now))
+            session.scalars(select(UploadSession.id).where(UploadSession.expires_at <= now))
         )
-        for row in expired:
-            session.delete(row)
         live = set(session.scalars(select(UploadSession.id)))
-    removed = 0
-    for row in expired:
-        part_path(settings, row.id).unlink(missing_ok=True)
-        _HASHES.forget(row.id)
-        removed += 1
+    gone = [upload_id for upload_id in expired if _remove_unlocked(settings, upload_id)]
+    removed = len(gone)
     if settings.uploads_dir.is_dir():
         for path in settings.uploads_dir.glob("*.part"):
             if path.stem not in live and _older_than(path, 3600):
                 path.unlink(missing_ok=True)
                 removed += 1
+    if gone:
+        with write_transaction(factory) as session:
+            for row in session.scalars(select(UploadSession).where(UploadSession.id.in_(gone))):
+                session.delete(row)
     return removed
+
+
+def _remove_unlocked(settings: Settings, upload_id: str) -> bool:
+    """Delete an upload's part file unless a request holds it; whether it is gone."""
+    try:
+        with locked_part(settings, upload_id, doing="expired"):
+            _remove_part(settings, upload_id)
+    except NotFoundError:
+        _HASHES.forget(upload_id)
+    except ConflictError:
+        return False
+    return True
 
 
 def _older_than(path: Path, seconds: float) -> bool:

@@ -155,7 +155,46 @@ def build_templates(settings: Settings) -> Jinja2Templates:
     env.filters["when"] = lambda value: "" if value is None else f"{value:%Y-%m-%d %H:%M} UTC"
     env.filters["day"] = lambda value: "" if value is None else f"{value:%Y-%m-%d}"
     env.filters["seconds"] = _format_seconds
+    env.filters["filesize"] = format_bytes
+    env.filters["duration"] = format_duration
     return templates
+
+
+def format_bytes(n_bytes: int | None) -> str:
+    """A byte count for people, in binary units.
+
+    >>> format_bytes(1_503_238_554), format_bytes(8 << 30), format_bytes(512)
+    ('1.4 GiB', '8 GiB', '512 bytes')
+    """
+    if n_bytes is None:
+        return "–"
+    if n_bytes < 1024:
+        return f"{n_bytes} bytes"
+    value = float(n_bytes)
+    for unit in ("KiB", "MiB", "GiB", "TiB"):
+        value /= 1024
+        if value < 1024 or unit == "TiB":
+            break
+    text = f"{value:.1f}"
+    return f"{text.removesuffix('.0')} {unit}"
+
+
+def format_duration(seconds: float | None) -> str:
+    """A wait for people, to the minute (rounded up).
+
+    >>> format_duration(59), format_duration(3 * 3600 + 12 * 60), format_duration(2 * 86400 + 5 * 3600)
+    ('1 min', '3 h 12 min', '2 d 5 h')
+    """
+    if seconds is None:
+        return "–"
+    minutes = max(1, -(-int(seconds) // 60))
+    days, minutes = divmod(minutes, 1440)
+    hours, minutes = divmod(minutes, 60)
+    if days:
+        return f"{days} d {hours} h" if hours else f"{days} d"
+    if hours:
+        return f"{hours} h {minutes} min" if minutes else f"{hours} h"
+    return f"{minutes} min"
 
 
 def _format_seconds(value: float | None) -> str:

@@ -109,9 +109,14 @@ class Worker:
     def run_once(self) -> bool:
         """Sweep (at most every ~30 s), then evaluate one job; whether a job was taken."""
         if time.monotonic() - self._last_sweep > 30:
-            queue.sweep(self.factory, self.settings)
-            expire_uploads(self.factory, self.settings)
             self._last_sweep = time.monotonic()
+            # Expired uploads first: deleting their files frees space even on a full disk,
+            # where the queue sweep (a database write) would fail.
+            for chore in (expire_uploads, queue.sweep):
+                try:
+                    chore(self.factory, self.settings)
+                except Exception:
+                    logger.exception("worker %s: %s failed", self.worker_id, chore.__name__)
         lease = queue.lease_next(self.factory, self.settings, self.worker_id)
         if lease is None:
             return False

@@ -1,12 +1,19 @@
 """Plots and palettes; matplotlib (the ``[viz]`` extra) is imported only when plotting."""
 
-from semantic3d.viz.plots import (
-    figure_to_png,
-    plot_agreement,
-    plot_class_histogram,
-    plot_confusion_heatmap,
-    plot_iou_bars,
-)
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from semantic3d.core.lazy import lazy_exports
+
+if TYPE_CHECKING:
+    from semantic3d.viz.plots import (
+        figure_to_png,
+        plot_agreement,
+        plot_class_histogram,
+        plot_confusion_heatmap,
+        plot_iou_bars,
+    )
 
 __all__ = [
     "figure_to_png",
@@ -15,3 +22,14 @@ __all__ = [
     "plot_confusion_heatmap",
     "plot_iou_bars",
 ]
+
+__getattr__, __dir__ = lazy_exports(
+    __name__,
+    {
+        "figure_to_png": "semantic3d.viz.plots",
+        "plot_agreement": "semantic3d.viz.plots",
+        "plot_class_histogram": "semantic3d.viz.plots",
+        "plot_confusion_heatmap": "semantic3d.viz.plots",
+        "plot_iou_bars": "semantic3d.viz.plots",
+    },
+)

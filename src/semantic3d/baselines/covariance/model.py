@@ -2,14 +2,18 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
 
+from semantic3d.baselines.common.prediction import LabelledBlock
 from semantic3d.baselines.covariance.config import CovarianceConfig
 from semantic3d.baselines.covariance.estimator import CovarianceClassifier
 from semantic3d.core.errors import ShapeError
+from semantic3d.core.pointcloud import PointCloud
 
 
 @dataclass(frozen=True, slots=True)
@@ -35,6 +39,40 @@ class CovarianceModel:
     seed: int
     package_version: str
     training_time_s: float
+
+    @property
+    def chunk_size(self) -> int:
+        """Points per chunk read while predicting (the configuration's)."""
+        return self.config.prediction.chunk_size
+
+    def iter_labelled_blocks(
+        self, chunks: Iterable[PointCloud], *, workdir: Path
+    ) -> Iterator[LabelledBlock]:
+        """Label a streamed scan (the :class:`~semantic3d.baselines.common.Predictor` protocol).
+
+        The scan goes through :func:`~semantic3d.features.scan.iter_scan_features` (whole in
+        memory when small, tile by tile otherwise). Each feature row is classified once: in
+        voxel mode a row is a level-0 voxel and its label goes to every point inside it
+        (they all have the same features, so this *is* per-point prediction); in per-point
+        mode every point has its own row.
+        """
+        from semantic3d.features.scan import iter_scan_features
+
+        prediction = self.config.prediction
+        for block in iter_scan_features(
+            chunks,
+            config=self.config.features,
+            max_points_in_memory=prediction.max_points_in_memory,
+            tile_size_m=prediction.tile_size_m,
+            workdir=workdir / "tiles",
+        ):
+            row_labels = self.predict_rows(block.table.values)
+            yield LabelledBlock(
+                block.point_indices,
+                row_labels[block.table.point_row],
+                block.n_scan_points,
+                tiled=block.tiled,
+            )
 
     @property
     def label_values(self) -> tuple[int, ...]:

@@ -10,31 +10,45 @@ files you trust.
 
 from __future__ import annotations
 
-import json
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
 from semantic3d import __version__
+from semantic3d.baselines.common.modelfile import (
+    ModelFileError,
+    check_versions,
+    read_header,
+    write_model_file,
+)
 from semantic3d.baselines.covariance.config import config_to_dict
 from semantic3d.baselines.covariance.model import CovarianceModel
-from semantic3d.core.errors import Semantic3DError, require
+from semantic3d.core.errors import require
 
 FORMAT = "semantic3d-covariance-model"
 FORMAT_VERSION = 1
 _MAGIC = b"S3DCOV1 "
+_KIND = "covariance model"
+_RETRAIN = "semantic3d baseline covariance train"
 
-
-class ModelFileError(Semantic3DError, ValueError):
-    """A file is not a covariance model, or was written by an incompatible version."""
+__all__ = [
+    "FORMAT",
+    "FORMAT_VERSION",
+    "ModelFileError",
+    "load_model",
+    "read_model_header",
+    "save_model",
+]
 
 
 def save_model(model: CovarianceModel, path: str | Path) -> Path:
-    """Write ``model`` to ``path`` (parent folders created); returns the path."""
+    """Write ``model`` to ``path`` (parent folders created); returns the path.
+
+    The file is written under a temporary name and renamed when complete: an error or
+    Ctrl-C leaves what was at ``path`` as it was.
+    """
     joblib: Any = require("joblib", "ml")
     sklearn: Any = require("sklearn", "ml")
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     header = {
         "format": FORMAT,
         "format_version": FORMAT_VERSION,
@@ -49,10 +63,12 @@ def save_model(model: CovarianceModel, path: str | Path) -> Path:
         "seed": model.seed,
         "training_time_s": model.training_time_s,
     }
-    with path.open("wb") as stream:
-        stream.write(_MAGIC + json.dumps(header).encode() + b"\n")
-        joblib.dump(model, stream, compress=3)
-    return path
+    return write_model_file(
+        path,
+        magic=_MAGIC,
+        header=header,
+        write_payload=lambda stream: joblib.dump(model, stream, compress=3),
+    )
 
 
 def read_model_header(path: str | Path) -> dict[str, Any]:
@@ -78,14 +94,15 @@ def load_model(path: str | Path) -> CovarianceModel:
     try:
         with path.open("rb") as stream:
             header = _read_header(stream, path)
-            found = (header.get("package_version"), header.get("sklearn_version"))
-            expected = (__version__, sklearn.__version__)
-            if found != expected:
-                raise ModelFileError(
-                    f"{path}: model written by semantic3d {found[0]} with scikit-learn "
-                    f"{found[1]}; this is semantic3d {expected[0]} with scikit-learn "
-                    f"{expected[1]}: retrain it (semantic3d baseline covariance train)"
-                )
+            check_versions(
+                header,
+                path,
+                expected={
+                    "package_version": ("semantic3d", __version__),
+                    "sklearn_version": ("scikit-learn", sklearn.__version__),
+                },
+                retrain=_RETRAIN,
+            )
             model = joblib.load(stream)
     except OSError as exc:
         raise ModelFileError(f"{path}: cannot read the model: {exc.strerror}") from exc
@@ -97,16 +114,6 @@ def load_model(path: str | Path) -> CovarianceModel:
 
 
 def _read_header(stream: Any, path: Path) -> dict[str, Any]:
-    line = stream.readline(1 << 20)
-    if not line.startswith(_MAGIC):
-        raise ModelFileError(f"{path}: not a semantic3d covariance model (bad magic bytes)")
-    try:
-        header: dict[str, Any] = json.loads(line[len(_MAGIC) :])
-    except ValueError as exc:
-        raise ModelFileError(f"{path}: corrupt model header: {exc}") from exc
-    if header.get("format") != FORMAT or header.get("format_version") != FORMAT_VERSION:
-        raise ModelFileError(
-            f"{path}: expected format {FORMAT} v{FORMAT_VERSION}, found "
-            f"{header.get('format')} v{header.get('format_version')}"
-        )
-    return header
+    return read_header(
+        stream, path, magic=_MAGIC, kind=_KIND, file_format=FORMAT, version=FORMAT_VERSION
+    )

@@ -14,39 +14,38 @@ import logging
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from semantic3d import __version__
+from semantic3d.baselines.common.scans import LabelledScan, TrainingDataError, find_labelled_scans
 from semantic3d.baselines.covariance.config import CovarianceConfig
 from semantic3d.baselines.covariance.estimator import CovarianceClassifier
 from semantic3d.baselines.covariance.model import CovarianceModel
 from semantic3d.core.classes import N_CLASSES, class_by_value
-from semantic3d.core.errors import DataFormatError, Semantic3DError, require
+from semantic3d.core.errors import DataFormatError, require
 from semantic3d.features.scan import iter_scan_features
-from semantic3d.io.ascii import iter_ascii_points
-from semantic3d.io.labels import iter_labels
+
+__all__ = [
+    "GridSearchResult",
+    "LabelledScan",
+    "TrainingDataError",
+    "TrainingSet",
+    "build_training_set",
+    "count_scan_labels",
+    "find_labelled_scans",
+    "fit_model",
+    "run_grid_search",
+    "sample_training_points",
+    "train_covariance_model",
+]
 
 logger = logging.getLogger(__name__)
 
 Progress = Callable[[str, int, int], None]
 """``progress(stage, done, total)``: called as scans are read and features computed."""
-
-
-class TrainingDataError(Semantic3DError, ValueError):
-    """The training scans cannot train a model (no labels, a class missing, ...)."""
-
-
-@dataclass(frozen=True, slots=True)
-class LabelledScan:
-    """A scan file and its labels file."""
-
-    name: str
-    points_path: Path
-    labels_path: Path
 
 
 @dataclass(frozen=True, slots=True)
@@ -100,38 +99,6 @@ class GridSearchResult:
     n_splits: int
 
 
-def find_labelled_scans(
-    data_dir: str | Path, *, names: Sequence[str] = ()
-) -> tuple[LabelledScan, ...]:
-    """The ``NAME.txt`` scans of ``data_dir`` with their ``NAME.labels`` (all, or ``names``).
-
-    Raises:
-        TrainingDataError: no scan found, a named scan missing, or a scan without labels.
-    """
-    folder = Path(data_dir)
-    if not folder.is_dir():
-        raise TrainingDataError(f"{folder}: expected a folder of NAME.txt + NAME.labels scans")
-    available = {p.stem: p for p in sorted(folder.glob("*.txt"))}
-    wanted = list(names) if names else sorted(available)
-    missing = [n for n in wanted if n not in available]
-    if missing:
-        raise TrainingDataError(
-            f"{folder}: scan(s) {missing} not found: expected NAME.txt files among "
-            f"{sorted(available) or 'none'}"
-        )
-    if not wanted:
-        raise TrainingDataError(f"{folder}: no NAME.txt scan found")
-    scans = []
-    for name in wanted:
-        labels = available[name].with_suffix(".labels")
-        if not labels.is_file():
-            raise TrainingDataError(
-                f"{available[name]}: training needs labels: expected {labels.name} beside it"
-            )
-        scans.append(LabelledScan(name, available[name], labels))
-    return tuple(scans)
-
-
 def sample_training_points(
     label_counts: NDArray[np.int64],
     *,
@@ -169,13 +136,13 @@ def count_scan_labels(scan: LabelledScan) -> NDArray[np.int64]:
     """``(N_CLASSES + 1,)`` points per label value; values above N_CLASSES are an error."""
     counts = np.zeros(N_CLASSES + 1, np.int64)
     seen = 0
-    for chunk in iter_labels(scan.labels_path):
+    for chunk in scan.iter_labels():
         counts += np.bincount(chunk, minlength=256)[: N_CLASSES + 1]
         if chunk.size and int(chunk.max()) > N_CLASSES:
             line = seen + int(np.argmax(chunk > N_CLASSES)) + 1
             raise DataFormatError(
                 f"expected label values 0..{N_CLASSES}, found {int(chunk.max())}",
-                path=str(scan.labels_path),
+                path=str(scan.labels_path or scan.points_path),
                 line=line,
             )
         seen += chunk.size
@@ -221,11 +188,7 @@ def build_training_set(
         if select.size == 0:
             continue
         for block in iter_scan_features(
-            iter_ascii_points(
-                scan.points_path,
-                labels_path=scan.labels_path,
-                chunk_size=config.prediction.chunk_size,
-            ),
+            scan.iter_points(chunk_size=config.prediction.chunk_size),
             config=config.features,
             select=select,
             max_points_in_memory=config.prediction.max_points_in_memory,
@@ -325,7 +288,7 @@ def _ordinals_to_indices(
     seen = {value: 0 for value in ordinals}
     found: list[NDArray[np.int64]] = []
     offset = 0
-    for chunk in iter_labels(scan.labels_path):
+    for chunk in scan.iter_labels():
         for value, wanted in ordinals.items():
             positions = np.flatnonzero(chunk == value)
             lo, hi = np.searchsorted(wanted, [seen[value], seen[value] + positions.size])

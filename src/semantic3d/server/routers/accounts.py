@@ -1,4 +1,4 @@
-"""Accounts: registration, login, logout, the account page with API tokens, ``/api/me``."""
+"""Accounts: registration, login, logout, the account page (API tokens, open uploads), ``/api/me``."""
 
 from __future__ import annotations
 
@@ -10,12 +10,15 @@ from fastapi.responses import RedirectResponse, Response
 from semantic3d.server.accounts import (
     authenticate,
     create_token,
-    create_user,
     list_tokens,
+    register_user,
     revoke_token,
 )
 from semantic3d.server.errors import AuthenticationError, ForbiddenError, InvalidInputError
+from semantic3d.server.throttle import RateLimiter, limiter_in
+from semantic3d.server.uploads import cancel_upload, list_uploads
 from semantic3d.server.web import (
+    ServerState,
     api_user,
     check_csrf,
     client_address,
@@ -27,6 +30,17 @@ from semantic3d.server.web import (
 )
 
 router = APIRouter()
+
+
+def registration_limiter(state: ServerState) -> RateLimiter:
+    """The server's registrations-per-address limit."""
+    settings = state.settings
+    return limiter_in(
+        state.extra,
+        "registrations",
+        limit=settings.register_max_per_ip,
+        window_s=settings.register_window_s,
+    )
 
 
 def _local_path(target: str | None) -> str:
@@ -65,7 +79,14 @@ def register(
     try:
         if password != password_again:
             raise InvalidInputError("the two passwords differ")
-        user = create_user(state.factory, username, password)
+        user = register_user(
+            state.factory,
+            state.settings,
+            registration_limiter(state),
+            username,
+            password,
+            address=client_address(request),
+        )
     except InvalidInputError as exc:
         return render(
             request,
@@ -121,8 +142,15 @@ def account_page(request: Request) -> Response:
     user = request.state.user = session_user(request)
     if user is None:
         return RedirectResponse("/login?next=/account", status_code=303)
-    tokens = list_tokens(state_of(request).factory, user.id)
-    return render(request, "account.html", {"tokens": tokens})
+    return render(request, "account.html", _account_context(request, user.id))
+
+
+def _account_context(request: Request, user_id: int) -> dict[str, Any]:
+    state = state_of(request)
+    return {
+        "tokens": list_tokens(state.factory, user_id),
+        "uploads": list_uploads(state.factory, state.settings, user_id=user_id),
+    }
 
 
 @router.post("/account/tokens", include_in_schema=False)
@@ -131,11 +159,10 @@ def new_token(request: Request, name: str = Form("cli"), csrf_token: str = Form(
     if user is None:
         return RedirectResponse("/login?next=/account", status_code=303)
     check_csrf(request, csrf_token)
-    factory = state_of(request).factory
-    _, secret = create_token(factory, user.id, name)
+    _, secret = create_token(state_of(request).factory, user.id, name)
     # Rendered in this response only: the secret is never stored or shown again.
     return render(
-        request, "account.html", {"tokens": list_tokens(factory, user.id), "new_token": secret}
+        request, "account.html", _account_context(request, user.id) | {"new_token": secret}
     )
 
 
@@ -146,4 +173,15 @@ def revoke(request: Request, token_id: int, csrf_token: str = Form("")) -> Respo
         return RedirectResponse("/login?next=/account", status_code=303)
     check_csrf(request, csrf_token)
     revoke_token(state_of(request).factory, user.id, token_id)
+    return RedirectResponse("/account", status_code=303)
+
+
+@router.post("/account/uploads/{upload_id}/delete", include_in_schema=False)
+def delete_upload_form(request: Request, upload_id: str, csrf_token: str = Form("")) -> Response:
+    user = request.state.user = session_user(request)
+    if user is None:
+        return RedirectResponse("/login?next=/account", status_code=303)
+    check_csrf(request, csrf_token)
+    state = state_of(request)
+    cancel_upload(state.factory, state.settings, upload_id, user_id=user.id)
     return RedirectResponse("/account", status_code=303)

@@ -1,4 +1,4 @@
-"""Challenges and their leaderboards: ``/``, ``/challenges/{name}``, ``/api/challenges…``."""
+"""Challenges and their leaderboards: ``/``, ``/challenges/{name}`` (and ``.csv``), the API."""
 
 from __future__ import annotations
 
@@ -8,8 +8,15 @@ from fastapi import APIRouter, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import HTMLResponse, Response
 
-from semantic3d.server.challenges import get_challenge, list_challenges
-from semantic3d.server.leaderboard import challenge_dict
+from semantic3d.server.challenges import (
+    CONFUSION_MIN_SCANS,
+    NOT_INSTALLED,
+    get_challenge,
+    list_challenges,
+    shows_confusion,
+)
+from semantic3d.server.leaderboard import challenge_dict, merged_rows, reference_entries
+from semantic3d.server.references import reference_results
 from semantic3d.server.web import render, session_user, state_of
 
 router = APIRouter()
@@ -40,11 +47,25 @@ async def api_leaderboard(request: Request, name: str) -> Response:
     return Response(body, media_type="application/json")
 
 
+@router.get("/challenges/{name}/leaderboard.csv", tags=["challenges"])
+async def leaderboard_csv(request: Request, name: str) -> Response:
+    """The public leaderboard as CSV: participants ranked, references sorted in unranked."""
+    cache = state_of(request).leaderboards
+    body = cache.fresh("csv", name)
+    if body is None:
+        body = await run_in_threadpool(cache.csv_bytes, name)
+    return Response(
+        body,
+        media_type="text/csv; charset=utf-8",
+        headers={"Content-Disposition": f'attachment; filename="{name}-leaderboard.csv"'},
+    )
+
+
 @router.get("/", include_in_schema=False)
 def index_page(request: Request) -> Response:
     request.state.user = session_user(request)
     rows = list_challenges(state_of(request).factory)
-    return render(request, "index.html", {"challenges": rows})
+    return render(request, "index.html", {"challenges": rows, "not_installed": NOT_INSTALLED})
 
 
 @router.get("/challenges/{name}", include_in_schema=False)
@@ -72,4 +93,17 @@ def _personal_page(request: Request, name: str) -> Response:
 
 def _render_board(request: Request, name: str) -> Any:
     challenge, entries = state_of(request).leaderboards.board(name)
-    return render(request, "leaderboard.html", {"challenge": challenge, "entries": entries})
+    references = reference_entries(challenge)
+    return render(
+        request,
+        "leaderboard.html",
+        {
+            "challenge": challenge,
+            "entries": merged_rows(entries, references),
+            "n_participants": len(entries),
+            "reference_source": reference_results().source if references else None,
+            "not_installed": NOT_INSTALLED,
+            "confusion_min_scans": CONFUSION_MIN_SCANS,
+            "shows_confusion": shows_confusion(challenge),
+        },
+    )

@@ -12,11 +12,19 @@ from typing import Any
 from fastapi import APIRouter, Form, Request
 from fastapi.responses import RedirectResponse, Response
 from pydantic import BaseModel
+from sqlalchemy import select
 
-from semantic3d.server.challenges import list_challenges
+from semantic3d.server.challenges import (
+    CONFUSION_MIN_SCANS,
+    accepts_submissions,
+    list_challenges,
+    shows_confusion,
+    submission_status,
+)
 from semantic3d.server.heatmap import confusion_svg
-from semantic3d.server.models import JOB_QUEUED, JOB_RUNNING
+from semantic3d.server.models import JOB_QUEUED, JOB_RUNNING, Submission, utc_now
 from semantic3d.server.submissions import (
+    next_submission_at,
     result_of,
     set_published,
     submission_dict,
@@ -46,7 +54,12 @@ def api_my_submissions(request: Request) -> dict[str, Any]:
     """The caller's submissions, newest first."""
     user = api_user(request)
     rows = user_submissions(state_of(request).factory, user.id)
-    return {"submissions": [submission_dict(row, owner=True) for row in rows]}
+    return {
+        "submissions": [
+            submission_dict(row, owner=True, confusion=_sees_confusion(row, user.is_admin))
+            for row in rows
+        ]
+    }
 
 
 @router.get("/api/submissions/{submission_id}", tags=["submissions"])
@@ -60,7 +73,11 @@ def api_submission(request: Request, submission_id: int) -> dict[str, Any]:
             viewer_id=user.id if user else None,
             viewer_is_admin=bool(user and user.is_admin),
         )
-        return submission_dict(row, owner=user is not None and user.id == row.user_id)
+        return submission_dict(
+            row,
+            owner=user is not None and user.id == row.user_id,
+            confusion=_sees_confusion(row, user is not None and user.is_admin),
+        )
 
 
 @router.post("/api/submissions/{submission_id}/publish", tags=["submissions"])
@@ -74,7 +91,12 @@ def api_publish(request: Request, submission_id: int, body: PublishRequest) -> d
     state.leaderboards.invalidate(None)
     with state.factory() as session:
         row = visible_submission(session, submission_id, viewer_id=user.id)
-        return submission_dict(row, owner=True)
+        return submission_dict(row, owner=True, confusion=_sees_confusion(row, user.is_admin))
+
+
+def _sees_confusion(row: Submission, is_admin: bool) -> bool:
+    """Confusion matrices follow the challenge's policy; administrators always see them."""
+    return is_admin or shows_confusion(row.challenge)
 
 
 @router.get("/submit", include_in_schema=False)
@@ -82,14 +104,37 @@ def submit_page(request: Request, challenge: str = "") -> Response:
     user = request.state.user = session_user(request)
     if user is None:
         return RedirectResponse("/login?next=/submit", status_code=303)
-    challenges = [row for row in list_challenges(state_of(request).factory) if row.is_open]
+    state = state_of(request)
+    rows = list_challenges(state.factory)
+    challenges = [row for row in rows if accepts_submissions(row)]
+    now = utc_now()
+    cooldowns = []
+    with state.factory() as session:
+        for row in challenges:
+            next_at = next_submission_at(
+                session, state.settings, user_id=user.id, challenge_id=row.id
+            )
+            wait_s = (next_at - now).total_seconds() if next_at and next_at > now else None
+            cooldowns.append({"challenge": row, "next_at": next_at, "wait_s": wait_s})
+        in_flight = session.scalar(
+            select(Submission.id).where(Submission.user_id == user.id, Submission.in_flight)
+        )
     return render(
         request,
         "submit.html",
         {
             "challenges": challenges,
+            "not_open": [row for row in rows if not accepts_submissions(row)],
+            "status_of": submission_status,
             "selected": challenge,
-            "max_upload_bytes": state_of(request).settings.max_upload_bytes,
+            "hint_challenge": challenge
+            if challenge in {row.name for row in challenges}
+            else (challenges[0].name if challenges else "NAME"),
+            "max_upload_bytes": state.settings.max_upload_bytes,
+            "cooldown_h": state.settings.submission_cooldown_h,
+            "cooldowns": cooldowns,
+            "in_flight": in_flight,
+            "base_url": str(request.base_url).rstrip("/"),
         },
     )
 
@@ -116,9 +161,10 @@ def submission_page(request: Request, submission_id: int) -> Response:
         job, challenge = row.job, row.challenge
         owner = user is not None and user.id == row.user_id
         result = result_of(row)
+        show_matrix = _sees_confusion(row, bool(user and user.is_admin))
         heatmap = (
             confusion_svg(result.confusion, title=f"{row.method_name} on {challenge.name}")
-            if result is not None
+            if result is not None and show_matrix
             else None
         )
         return render(
@@ -130,8 +176,10 @@ def submission_page(request: Request, submission_id: int) -> Response:
                 "challenge": challenge,
                 "owner": owner,
                 "heatmap": heatmap,
-                "iou": submission_dict(row, owner=owner)["scores"],
+                "iou": submission_dict(row, owner=owner, confusion=False)["scores"],
                 "pending": job.status in (JOB_QUEUED, JOB_RUNNING),
+                "confusion_hidden": result is not None and not show_matrix,
+                "confusion_min_scans": CONFUSION_MIN_SCANS,
             },
         )
 

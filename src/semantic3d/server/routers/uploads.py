@@ -2,6 +2,9 @@
 
 Bodies are streamed to disk as they arrive (``request.stream()``), never parsed into
 memory. Finalizing validates the submission and queues it (see ``submissions.py``).
+Invalid submissions (and uploads corrupted in transit) count toward a per-account limit,
+``max_rejected_uploads`` per ``rejected_upload_window_s``: past it, opening and finalizing
+uploads answer 429, so a costly bad archive cannot be sent again and again.
 """
 
 from __future__ import annotations
@@ -14,6 +17,7 @@ from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel, Field
 from starlette.requests import ClientDisconnect
 
+from semantic3d.core.errors import SubmissionError
 from semantic3d.evaluation import MethodInfo
 from semantic3d.server.errors import InvalidInputError
 from semantic3d.server.models import Submission
@@ -22,10 +26,35 @@ from semantic3d.server.submissions import (
     finalize_upload,
     submission_dict,
 )
-from semantic3d.server.uploads import create_upload, delete_upload, get_upload, write_chunk
-from semantic3d.server.web import api_user, state_of
+from semantic3d.server.throttle import RateLimiter, limiter_in
+from semantic3d.server.uploads import (
+    cancel_upload,
+    create_upload,
+    get_upload,
+    list_uploads,
+    write_chunk,
+)
+from semantic3d.server.web import ServerState, api_user, state_of
 
 router = APIRouter(prefix="/api/uploads", tags=["uploads"])
+
+MAX_RUNTIME_S = 1e7
+"""Largest run time a method card may state (115 days); also refuses ``1e308``."""
+
+
+def rejection_limiter(state: ServerState) -> RateLimiter:
+    """The server's rejected-uploads-per-account limit."""
+    settings = state.settings
+    return limiter_in(
+        state.extra,
+        "rejected-uploads",
+        limit=settings.max_rejected_uploads,
+        window_s=settings.rejected_upload_window_s,
+    )
+
+
+def _check_rejections(state: ServerState, user_id: int) -> None:
+    rejection_limiter(state).check(str(user_id), "invalid submissions from your account")
 
 
 class UploadRequest(BaseModel):
@@ -44,7 +73,7 @@ class MethodCard(BaseModel):
     description: str = Field(default="", max_length=20_000)
     paper_url: str = Field(default="", max_length=500)
     code_url: str = Field(default="", max_length=500)
-    runtime_s: float | None = Field(default=None, ge=0)
+    runtime_s: float | None = Field(default=None, ge=0, le=MAX_RUNTIME_S, allow_inf_nan=False)
     hardware: str | None = Field(default=None, max_length=200)
 
     def to_method(self) -> MethodInfo:
@@ -69,6 +98,7 @@ def open_upload(request: Request, body: UploadRequest) -> dict[str, Any]:
     """Open (or, same challenge/size/sha256, resume) an upload session."""
     user = api_user(request)
     state = state_of(request)
+    _check_rejections(state, user.id)
     check_upload_allowed(state.factory, state.settings, user_id=user.id, challenge=body.challenge)
     upload = create_upload(
         state.factory,
@@ -80,6 +110,18 @@ def open_upload(request: Request, body: UploadRequest) -> dict[str, Any]:
         sha256=body.sha256,
     )
     return upload.to_dict() | {"max_chunk_bytes": state.settings.max_chunk_bytes}
+
+
+@router.get("")
+def open_uploads(request: Request) -> dict[str, Any]:
+    """Your unfinished uploads (oldest first): resume or delete them."""
+    user = api_user(request)
+    state = state_of(request)
+    uploads = list_uploads(state.factory, state.settings, user_id=user.id)
+    return {
+        "uploads": [upload.to_dict() for upload in uploads],
+        "max_open_uploads": state.settings.max_open_uploads,
+    }
 
 
 @router.get("/{upload_id}")
@@ -126,12 +168,11 @@ async def put_chunk(
 
 
 @router.delete("/{upload_id}", status_code=204)
-def cancel_upload(request: Request, upload_id: str) -> Response:
-    """Abandon an upload and delete its bytes."""
+def abandon_upload(request: Request, upload_id: str) -> Response:
+    """Abandon an upload and delete its bytes (409 while it is being written or finalized)."""
     user = api_user(request)
     state = state_of(request)
-    get_upload(state.factory, state.settings, upload_id, user_id=user.id)
-    delete_upload(state.factory, state.settings, upload_id)
+    cancel_upload(state.factory, state.settings, upload_id, user_id=user.id)
     return Response(status_code=204)
 
 
@@ -144,14 +185,23 @@ def finalize(request: Request, upload_id: str, body: FinalizeRequest) -> dict[st
     """
     user = api_user(request)
     state = state_of(request)
-    submission = finalize_upload(
-        state.factory,
-        state.settings,
-        state.challenges,
-        user_id=user.id,
-        upload_id=upload_id,
-        method=body.method.to_method(),
-    )
+    _check_rejections(state, user.id)
+    try:
+        submission = finalize_upload(
+            state.factory,
+            state.settings,
+            state.challenges,
+            user_id=user.id,
+            upload_id=upload_id,
+            method=body.method.to_method(),
+        )
+    except SubmissionError:
+        rejection_limiter(state).hit(str(user.id))
+        raise
+    except InvalidInputError as exc:
+        if "corrupted in transit" in str(exc):
+            rejection_limiter(state).hit(str(user.id))
+        raise
     state.leaderboards.invalidate(None)
     with state.factory() as session:
         return submission_dict(session.get_one(Submission, submission.id), owner=True)

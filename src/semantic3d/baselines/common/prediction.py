@@ -1,0 +1,237 @@
+"""The streaming prediction loop every baseline shares, and the protocol a model implements.
+
+A :class:`Predictor` turns a scan's point chunks into :class:`LabelledBlock`\\ s: label values
+of some of the scan's points, identified by their position in the scan, in any order
+(whole scans in memory, tiles of a tile store, CNN batches). :func:`predict_scan` streams
+any supported point file (``io.iter_points``: ASCII, LAS/LAZ, PLY, the cache) through a
+predictor, collects the labels in a :class:`~semantic3d.baselines.common.labelbuffer.LabelBuffer`,
+writes ``.labels`` in the input's point order and the run record beside it.
+:func:`predict_scans` labels many scans with one loaded model into a folder or a zip
+ready to submit. No existing file is replaced unless ``overwrite=True``; every file
+appears complete or not at all.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import tempfile
+import time
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from semantic3d import __version__
+from semantic3d.baselines.common.labelbuffer import LabelBuffer
+from semantic3d.baselines.common.run import PredictionRun, PredictionRunSet, describe_hardware
+from semantic3d.baselines.common.submission import (
+    RUN_RECORD_SUFFIX,
+    ScanToLabel,
+    is_zip_output,
+    planned_outputs,
+    refuse_existing_outputs,
+    staged_folder,
+    write_atomic_text,
+    write_submission_zip,
+)
+from semantic3d.core.errors import ShapeError
+from semantic3d.core.pointcloud import PointCloud
+
+__all__ = [
+    "LabelledBlock",
+    "Predictor",
+    "Progress",
+    "RunProgress",
+    "predict_scan",
+    "predict_scans",
+]
+
+Progress = Callable[[int, int], None]
+"""``progress(points_labelled, n_points_or_0_while_unknown)``."""
+
+RunProgress = Callable[[int, int, int], None]
+"""``progress(scan_index, points_labelled_in_all_scans, n_points_of_all_scans)``; the total
+is an estimate (from the files' sizes) until every scan has been read."""
+
+DEFAULT_CHUNK_SIZE = 1 << 20
+
+
+@dataclass(frozen=True, slots=True)
+class LabelledBlock:
+    """Labels of some points of a scan.
+
+    Attributes:
+        point_indices: ``(m,)`` int64 positions of the points in the scan.
+        labels: ``(m,)`` uint8 label values.
+        n_scan_points: points in the whole scan (known once the scan has been read).
+        tiled: whether the predictor worked tile by tile.
+    """
+
+    point_indices: NDArray[np.int64]
+    labels: NDArray[np.uint8]
+    n_scan_points: int
+    tiled: bool = False
+
+
+class Predictor(Protocol):
+    """What a trained baseline offers the prediction loop."""
+
+    @property
+    def training_scans(self) -> tuple[str, ...]:
+        """Names of the scans it was trained on (recorded with every run)."""
+        ...
+
+    @property
+    def chunk_size(self) -> int:
+        """Points per chunk it wants to read."""
+        ...
+
+    def iter_labelled_blocks(
+        self, chunks: Iterable[PointCloud], *, workdir: Path
+    ) -> Iterator[LabelledBlock]:
+        """Label every point of the streamed scan, block by block, in any order.
+
+        ``workdir`` is a scratch folder for tiles and caches, removed after the scan.
+        """
+        ...
+
+
+def predict_scan(
+    predictor: Predictor,
+    points_path: str | Path,
+    *,
+    out_path: str | Path,
+    workdir: str | Path | None = None,
+    progress: Progress | None = None,
+    overwrite: bool = False,
+) -> PredictionRun:
+    """Label every point of a scan (any format); write ``.labels`` and its run record.
+
+    Args:
+        predictor: a trained model.
+        points_path: the scan (``.txt``, ``.las``/``.laz``, ``.ply`` or a cache folder).
+        out_path: labels file to write (there is no default: the scan's own
+            ``NAME.labels`` is usually its ground truth).
+        workdir: scratch folder for tiles and the label buffer (default a temporary one).
+        progress: called with points labelled so far.
+        overwrite: replace ``out_path`` and its run record when they exist.
+
+    Raises:
+        OutputExistsError: ``out_path`` or its run record exists and ``overwrite`` is False
+            (checked before any work).
+        ShapeError: the predictor left points without a label.
+    """
+    from semantic3d.io.formats import iter_points
+    from semantic3d.io.labels import write_labels
+
+    started = time.perf_counter()
+    points_path = Path(points_path)
+    out = Path(out_path)
+    record = out.with_name(out.name + RUN_RECORD_SUFFIX)
+    refuse_existing_outputs([out, record], overwrite=overwrite)
+    chunk_size = predictor.chunk_size
+    with tempfile.TemporaryDirectory(prefix="s3d-predict-", dir=workdir) as scratch:
+        scratch_dir = Path(scratch)
+        done = 0
+        tiled = False
+        n_points = 0
+        with LabelBuffer(scratch_dir / "labels.u8") as buffer:
+            chunks = iter_points(points_path, chunk_size=chunk_size, sibling_labels=False)
+            for block in predictor.iter_labelled_blocks(chunks, workdir=scratch_dir):
+                tiled = tiled or block.tiled
+                n_points = block.n_scan_points
+                buffer.put(block.point_indices, block.labels, n_points)
+                done += block.point_indices.size
+                if progress is not None:
+                    progress(done, n_points)
+            if done != n_points:
+                raise ShapeError(
+                    f"{points_path}: expected a label for each of {n_points} points, found {done}"
+                )
+            out.parent.mkdir(parents=True, exist_ok=True)
+            written = write_labels(out, buffer.iter_chunks(chunk_size))
+    run = PredictionRun(
+        scan=str(points_path),
+        labels_path=str(out),
+        n_points=written,
+        runtime_s=time.perf_counter() - started,
+        tiled=tiled,
+        hardware=describe_hardware(),
+        package_version=__version__,
+        training_scans=predictor.training_scans,
+    )
+    write_atomic_text(record, json.dumps(run.to_dict(), indent=2) + "\n")
+    return run
+
+
+def predict_scans(
+    predictor: Predictor,
+    scans: Sequence[ScanToLabel],
+    out: str | Path,
+    *,
+    workdir: str | Path | None = None,
+    progress: RunProgress | None = None,
+    overwrite: bool = False,
+) -> PredictionRunSet:
+    """Label ``scans`` with one model into a folder, or a zip archive when ``out`` ends in .zip.
+
+    A folder gets ``NAME.labels`` and a ``NAME.labels.json`` run record per scan (created
+    if needed); a zip holds only the ``.labels`` files (a submission, see
+    :mod:`semantic3d.baselines.common.submission`) and the run records go to
+    ``ARCHIVE.zip.json``. Every file is written under a temporary name and renamed when
+    complete: after an error or Ctrl-C a folder holds the scans finished so far and a
+    zip does not exist.
+
+    Raises:
+        OutputExistsError: an output exists and ``overwrite`` is False (checked before
+            any work, naming the first one).
+    """
+    from semantic3d.io.formats import estimate_point_count
+
+    started = time.perf_counter()
+    out = Path(out)
+    refuse_existing_outputs(planned_outputs(out, scans), overwrite=overwrite)
+    estimates = [estimate_point_count(scan.points_path).n_points for scan in scans]
+    runs: list[PredictionRun] = []
+
+    def predict_all(folder: Path) -> None:
+        for index, scan in enumerate(scans):
+            before = sum(run.n_points for run in runs)
+
+            def update(done: int, total: int, index: int = index, before: int = before) -> None:
+                if total:
+                    estimates[index] = total
+                if progress is not None:
+                    progress(index, before + done, before + sum(estimates[index:]))
+
+            runs.append(
+                predict_scan(
+                    predictor,
+                    scan.points_path,
+                    out_path=folder / scan.output_name,
+                    workdir=workdir,
+                    progress=update,
+                    overwrite=overwrite or folder != out,
+                )
+            )
+
+    if not is_zip_output(out):
+        out.mkdir(parents=True, exist_ok=True)
+        predict_all(out)
+        return PredictionRunSet(str(out), tuple(runs), time.perf_counter() - started)
+    with staged_folder(out) as folder:
+        predict_all(folder)
+        write_submission_zip(out, [(scan.output_name, folder / scan.output_name) for scan in scans])
+    runs = [
+        dataclasses.replace(run, labels_path=f"{out}:{scan.output_name}")
+        for run, scan in zip(runs, scans, strict=True)
+    ]
+    result = PredictionRunSet(str(out), tuple(runs), time.perf_counter() - started)
+    write_atomic_text(
+        out.with_name(out.name + RUN_RECORD_SUFFIX), json.dumps(result.to_dict(), indent=2) + "\n"
+    )
+    return result

@@ -1,0 +1,244 @@
+"""``semantic3d baseline covariance predict``: safe default output, whole splits, zips, the
+predict → evaluate flow, and interruption."""
+
+from __future__ import annotations
+
+import json
+import zipfile
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from semantic3d.baselines.common.submission import (
+    ScanToLabel,
+    SubmissionLayoutError,
+    find_scans_to_label,
+)
+from semantic3d.baselines.covariance.model import CovarianceModel
+from semantic3d.baselines.covariance.persistence import save_model
+from semantic3d.baselines.covariance.predict import predict_scans
+from semantic3d.baselines.covariance.training import (
+    build_training_set,
+    find_labelled_scans,
+    fit_model,
+)
+from semantic3d.cli.app import app
+from semantic3d.core.errors import OutputExistsError
+from semantic3d.datasets import Semantic3D
+from semantic3d.evaluation import load_challenge
+from semantic3d.io.labels import count_labels
+from tests.baselines.conftest import SMALL_CONFIG, write_scan
+from tests.baselines.scene import make_street_scene
+
+runner = CliRunner()
+
+
+@pytest.fixture(scope="module")
+def model(scene_dir: Path) -> CovarianceModel:
+    scans = find_labelled_scans(scene_dir, names=["train_a"])
+    return fit_model(build_training_set(scans, config=SMALL_CONFIG), config=SMALL_CONFIG)
+
+
+@pytest.fixture(scope="module")
+def model_file(model: CovarianceModel, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return save_model(model, tmp_path_factory.mktemp("model") / "m.s3d")
+
+
+@pytest.fixture
+def data(tmp_path: Path) -> Path:
+    """Two small labelled scans, ``a`` and ``b``."""
+    folder = tmp_path / "data"
+    for name, seed in (("a", 31), ("b", 32)):
+        write_scan(folder, name, make_street_scene(seed, size_m=12.0, spacing_m=0.25))
+    return folder
+
+
+def _predict(*args: str) -> tuple[int, str]:
+    result = runner.invoke(app, ["baseline", "covariance", "predict", *args])
+    return result.exit_code, result.output
+
+
+def test_predict_without_out_never_touches_the_ground_truth(
+    model_file: Path, data: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    truth = (data / "a.labels").read_bytes()
+    code, output = _predict(str(data / "a.txt"), "--model", str(model_file))
+    assert code == 0, output
+    assert (data / "a.labels").read_bytes() == truth
+    assert sorted(p.name for p in data.iterdir()) == ["a.labels", "a.txt", "b.labels", "b.txt"]
+    written = tmp_path / "predictions" / "a.labels"
+    assert count_labels(written) == count_labels(data / "a.labels")
+    assert json.loads((tmp_path / "predictions" / "a.labels.json").read_text())["n_points"] > 0
+    # a second run refuses to replace the first one's output, unless told
+    before = written.read_bytes()
+    code, output = _predict(str(data / "a.txt"), "--model", str(model_file))
+    assert code == 2
+    assert "a.labels: already exists" in output and "--overwrite" in output
+    assert written.read_bytes() == before
+    code, output = _predict(str(data / "a.txt"), "--model", str(model_file), "--overwrite")
+    assert code == 0, output
+
+
+def test_a_labels_out_names_the_file(model_file: Path, data: Path, tmp_path: Path) -> None:
+    out = tmp_path / "x" / "mine.labels"
+    code, output = _predict(str(data / "b.txt"), "--model", str(model_file), "--out", str(out))
+    assert code == 0, output
+    assert count_labels(out) == count_labels(data / "b.labels")
+    assert (out.parent / "mine.labels.json").is_file()
+    code, output = _predict(
+        str(data / "b.txt"), "--model", str(model_file), "--out", str(data / "b.labels")
+    )
+    assert code == 2 and "already exists" in output
+
+
+def test_predict_a_folder_then_evaluate_it_as_it_is(
+    model_file: Path, data: Path, tmp_path: Path
+) -> None:
+    predictions = tmp_path / "predictions"
+    code, output = _predict(
+        "--data", str(data), "--model", str(model_file), "--out", str(predictions)
+    )
+    assert code == 0, output
+    assert "2 scans" in output
+    assert sorted(p.name for p in predictions.iterdir()) == [
+        "a.labels",
+        "a.labels.json",
+        "b.labels",
+        "b.labels.json",
+    ]
+    result = runner.invoke(app, ["evaluate", "--gt", str(data), "--pred", str(predictions)])
+    assert result.exit_code == 0, result.output
+    assert "labelled points scored" in result.output
+    result = runner.invoke(app, ["validate", str(predictions), "--gt", str(data)])
+    assert result.exit_code == 0, result.output
+    assert "holds the 2 files" in " ".join(result.output.split())
+
+
+def test_a_stray_json_in_a_zip_is_still_refused(data: Path, tmp_path: Path) -> None:
+    archive = tmp_path / "sub.zip"
+    with zipfile.ZipFile(archive, "w") as out:
+        for name in ("a.labels", "b.labels"):
+            out.write(data / name, arcname=name)
+        out.write(data / "a.labels", arcname="a.labels.json")
+    result = runner.invoke(app, ["validate", str(archive), "--gt", str(data)])
+    assert result.exit_code == 1
+    assert "unexpected file 'a.labels.json'" in result.output
+
+
+def test_predict_a_split_into_a_zip_ready_to_submit(
+    model_file: Path, data: Path, tmp_path: Path
+) -> None:
+    archive = tmp_path / "out" / "preds.zip"
+    code, output = _predict("--data", str(data), "--model", str(model_file), "--out", str(archive))
+    assert code == 0, output
+    assert "semantic3d submit" in output and "--runtime-s" in output
+    with zipfile.ZipFile(archive) as opened:
+        assert sorted(opened.namelist()) == ["a.labels", "b.labels"]
+    record = json.loads((tmp_path / "out" / "preds.zip.json").read_text())
+    assert [scan["labels_path"] for scan in record["scans"]] == [
+        f"{archive}:a.labels",
+        f"{archive}:b.labels",
+    ]
+    assert sorted(p.name for p in archive.parent.iterdir()) == ["preds.zip", "preds.zip.json"]
+    result = runner.invoke(app, ["validate", str(archive), "--gt", str(data)])
+    assert result.exit_code == 0, result.output
+    code, output = _predict("--data", str(data), "--model", str(model_file), "--out", str(archive))
+    assert code == 2 and "preds.zip: already exists" in output
+
+
+def test_a_challenge_split_gets_the_official_names(
+    model_file: Path, data: Path, tmp_path: Path
+) -> None:
+    split = tmp_path / "reduced"
+    split.mkdir()
+    for files in Semantic3D(split).scans("reduced-8"):
+        files.points_path.write_bytes((data / "a.txt").read_bytes())
+    archive = tmp_path / "reduced-8.zip"
+    code, output = _predict(
+        "--data", str(split), "--challenge", "reduced-8", "--model", str(model_file),
+        "--out", str(archive),
+    )  # fmt: skip
+    assert code == 0, output
+    assert "--challenge reduced-8" in " ".join(output.split())
+    with zipfile.ZipFile(archive) as opened:
+        assert sorted(opened.namelist()) == sorted(
+            load_challenge("reduced-8", ground_truth_root=None).submission_names
+        )
+
+
+def test_a_challenge_split_with_missing_scans_is_one_line(model_file: Path, data: Path) -> None:
+    code, output = _predict(
+        "--data", str(data), "--challenge", "semantic-8", "--model", str(model_file)
+    )
+    assert code == 2
+    assert "expected the 15 scans of semantic-8, missing 15" in output
+    assert len(output.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (
+            ["{data}/a.txt", "--data", "{data}"],
+            "expected one SCAN argument or --data DIR, found both",
+        ),
+        ([], "expected one SCAN argument or --data DIR, found neither"),
+        (["{data}/a.txt", "--challenge", "reduced-8"], "--challenge applies to --data"),
+        (["--data", "{data}", "--out", "{data}/x.labels"], "--out is a folder or a .zip"),
+        (["{data}/missing.txt"], "expected a scan file"),
+        (["--data", "{data}/a.txt"], "is a file"),
+        (["--data", "{empty}"], "expected NAME.txt scans, found none"),
+    ],
+)
+def test_bad_predict_arguments_exit_2_with_one_line(
+    model_file: Path, data: Path, tmp_path: Path, args: list[str], message: str
+) -> None:
+    (tmp_path / "empty").mkdir()
+    filled = [a.format(data=data, empty=tmp_path / "empty") for a in args]
+    code, output = _predict(*filled, "--model", str(model_file))
+    assert code == 2, output
+    assert message in " ".join(output.split())
+    assert "Traceback" not in output
+
+
+def test_an_interrupted_zip_run_leaves_nothing(
+    model: CovarianceModel, data: Path, tmp_path: Path
+) -> None:
+    scans = find_scans_to_label(data)
+
+    def interrupt(index: int, done: int, total: int) -> None:
+        if index == 1:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        predict_scans(model, scans, tmp_path / "out" / "p.zip", progress=interrupt)
+    assert list((tmp_path / "out").iterdir()) == []
+    # a folder keeps the scans finished before the interrupt, whole, and nothing partial
+    with pytest.raises(KeyboardInterrupt):
+        predict_scans(model, scans, tmp_path / "folder", progress=interrupt)
+    assert sorted(p.name for p in (tmp_path / "folder").iterdir()) == ["a.labels", "a.labels.json"]
+
+
+def test_the_library_refuses_existing_outputs_before_working(
+    model: CovarianceModel, data: Path, tmp_path: Path
+) -> None:
+    (tmp_path / "b.labels.json").write_text("{}")
+    scans = find_scans_to_label(data)
+    with pytest.raises(OutputExistsError, match=r"b\.labels\.json: already exists"):
+        predict_scans(model, scans, tmp_path)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["b.labels.json", "data"]
+
+
+def test_finding_scans_to_label(data: Path, tmp_path: Path) -> None:
+    assert find_scans_to_label(data) == (
+        ScanToLabel("a", data / "a.txt", "a.labels"),
+        ScanToLabel("b", data / "b.txt", "b.labels"),
+    )
+    with pytest.raises(SubmissionLayoutError, match=r"expected a folder of NAME\.txt scans"):
+        find_scans_to_label(tmp_path / "nowhere")
+    with pytest.raises(
+        SubmissionLayoutError, match="expected a challenge, one of semantic-8, reduced-8"
+    ):
+        find_scans_to_label(data, challenge="train")
