@@ -1,4 +1,4 @@
-"""The benchmark"s scans, splits and submission names; downloading them; a dataset folder view.
+"""The benchmark's scans, splits and submission names; downloading them; a dataset folder view.
 
 Importing this package does not import ``py7zr``; extraction imports it on first use (extra
 ``download``).

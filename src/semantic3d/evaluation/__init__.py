@@ -1,13 +1,13 @@
 """The semantic3D.net benchmark: protocol, challenges, submission validation, evaluation.
 
-Also the paper"s two analysis tools: points per class per split (:mod:`.stats`) and the
+Also the paper's two analysis tools: points per class per split (:mod:`.stats`) and the
 label agreement of overlapping scans (:mod:`.agreement`). Reports live in :mod:`.report`.
 The convention (rows ground truth, ground truth 0 dropped, absent classes NaN and left
 out of the mean) is written once in ``docs/evaluation.md`` and ``protocol_v1.toml``.
 
 >>> from semantic3d.evaluation import load_challenge
 >>> load_challenge("reduced-8", ground_truth_root=None).submission_names[0]
-"marketsquarefeldkirch4-reduced.labels"
+'marketsquarefeldkirch4-reduced.labels'
 """
 
 from __future__ import annotations
