@@ -116,27 +116,36 @@ def test_distance_wider_than_a_tile_reads_several_rings_of_neighbours() -> None:
 
 
 def _reference(
-    receiver: PointCloud, source: PointCloud, max_distance_m: float
+    receiver: PointCloud, source: PointCloud, max_distance_m: float, *, exclude_first: bool
 ) -> tuple[np.ndarray, int]:
-    """One untiled cKDTree over the whole source scan: the textbook transfer."""
+    """One untiled cKDTree over the whole source scan: the textbook transfer.
+
+    The paper's order searches among all source points and leaves out the pairs whose
+    source point is unlabelled or an artefact; ``exclude_first`` removes those first.
+    """
     from scipy.spatial import cKDTree
 
     keep_r = ~np.isin(np.asarray(receiver.labels), (0, 7))
     keep_s = ~np.isin(np.asarray(source.labels), (0, 7))
+    if not exclude_first:
+        keep_s[:] = True
     distance, index = cKDTree(source.xyz[keep_s]).query(
         receiver.xyz[keep_r], k=1, distance_upper_bound=max_distance_m
     )
     hit = np.isfinite(distance)
+    taken = np.zeros(hit.size, np.uint8)
+    taken[hit] = np.asarray(source.labels)[keep_s][index[hit]]
+    hit &= ~np.isin(taken, (0, 7))
     matrix = ConfusionMatrix()
-    matrix.update(
-        np.asarray(receiver.labels)[keep_r][hit],
-        np.asarray(source.labels)[keep_s][index[hit]],
-    )
+    matrix.update(np.asarray(receiver.labels)[keep_r][hit], taken[hit])
     return matrix.compute(), int(hit.sum())
 
 
+@pytest.mark.parametrize("exclude_first", [False, True], ids=["paper_order", "exclude_first"])
 @pytest.mark.parametrize("tile_size_m", [0.7, 3.0, 50.0])
-def test_equals_an_untiled_nearest_neighbour_search(tile_size_m: float) -> None:
+def test_equals_an_untiled_nearest_neighbour_search(
+    tile_size_m: float, exclude_first: bool
+) -> None:
     # Clustered points (dense blobs and sparse outskirts, as scans near and far from a
     # station), so the occupancy filter both keeps and drops points.
     rng = np.random.default_rng(4)
@@ -150,9 +159,24 @@ def test_equals_an_untiled_nearest_neighbour_search(tile_size_m: float) -> None:
         return PointCloud.from_arrays(xyz, labels=rng.integers(0, 9, n).astype(np.uint8))
 
     a, b = scan(0.0), scan(0.01)
-    result = compute_label_agreement([a], [b], max_distance_m=0.04, tile_size_m=tile_size_m)
+    result = compute_label_agreement(
+        [a], [b], max_distance_m=0.04, tile_size_m=tile_size_m,
+        exclude_before_matching=exclude_first,
+    )  # fmt: skip
+    assert result.excluded_before_matching is exclude_first
     for direction, (receiver, source) in zip(result.directions, ((b, a), (a, b)), strict=True):
-        matrix, n_matched = _reference(receiver, source, 0.04)
+        matrix, n_matched = _reference(receiver, source, 0.04, exclude_first=exclude_first)
         assert 1_000 < n_matched < 25_000
         assert direction.n_matched == n_matched
         np.testing.assert_array_equal(direction.confusion, matrix)
+
+
+def test_an_artefact_nearer_than_a_partner_hides_the_partner_in_the_paper_order() -> None:
+    """B's point has an artefact of A 1 cm away and a building point of A 3 cm away."""
+    a = PointCloud.from_arrays([[0.01, 0.0, 0.0], [0.03, 0.0, 0.0]], labels=[7, 5])
+    b = PointCloud.from_arrays([[0.0, 0.0, 0.0]], labels=[5])
+    paper = compute_label_agreement([a], [b])
+    first = compute_label_agreement([a], [b], exclude_before_matching=True)
+    assert paper.a_to_b.n_points == first.a_to_b.n_points == 1
+    assert paper.a_to_b.n_matched == 0  # its nearest neighbour is an artefact: left out
+    assert first.a_to_b.n_matched == 1 and first.a_to_b.confusion[4, 4] == 1

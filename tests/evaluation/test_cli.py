@@ -148,12 +148,12 @@ def test_agreement_table_and_plot(tmp_path: Path) -> None:
     assert plot.read_bytes().startswith(b"\x89PNG")
 
 
-@pytest.mark.parametrize("distance", ["0", "20"])
-def test_agreement_rejects_bad_distances(tmp_path: Path, distance: str) -> None:
+@pytest.mark.parametrize("option", [["--max-distance", "0"], ["--tile-size", "0"]])
+def test_agreement_rejects_bad_distances(tmp_path: Path, option: list[str]) -> None:
     files = []
     for name in ("a.txt", "a.labels", "b.txt", "b.labels"):
         (tmp_path / name).write_text("")
         files.append(str(tmp_path / name))
-    result = runner.invoke(app, ["agreement", *files, "--max-distance", distance])
+    result = runner.invoke(app, ["agreement", *files, *option])
     assert result.exit_code == 2
-    assert "expected 0 < --max-distance < --tile-size" in result.stderr
+    assert "expected a positive --max-distance and --tile-size" in result.stderr

@@ -314,12 +314,19 @@ def agreement(
     plot: Path | None = typer.Option(
         None, "--plot", dir_okay=False, help="Write the per-class IoU plot of both directions."
     ),
+    exclude_first: bool = typer.Option(
+        False,
+        "--exclude-first",
+        help="Remove unlabelled points and scanning artefacts before the neighbour search "
+        "(default, as the paper: search among all points, then leave out their pairs).",
+    ),
     overwrite: bool = typer.Option(False, "--overwrite", help=_OVERWRITE_HELP),
 ) -> None:
     """Label agreement of two overlapping scans: transfer labels A→B and B→A, score them."""
-    if not 0 < max_distance < tile_size:
+    if not (max_distance > 0 and tile_size > 0):
         raise fail(
-            f"expected 0 < --max-distance < --tile-size, found {max_distance} and {tile_size}"
+            f"expected a positive --max-distance and --tile-size, found {max_distance} and "
+            f"{tile_size}"
         )
     with guarded():
         from semantic3d.core.errors import require
@@ -338,6 +345,7 @@ def agreement(
                 b_labels,
                 max_distance_m=max_distance,
                 tile_size_m=tile_size,
+                exclude_before_matching=exclude_first,
                 progress=lambda done, total: progress.update(
                     task, description="matching tiles", completed=done, total=total
                 ),

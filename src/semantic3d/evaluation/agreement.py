@@ -9,9 +9,13 @@ The check is asymmetric, so both directions are computed:
   labels, columns the labels taken from A;
 - ``b_to_a``: the reverse.
 
-Points labelled 0 (unlabelled) or 7 (scanning artefacts: moving objects and noise seen by
-one scan only) are removed from both scans before matching. Points without a neighbour
-within ``max_distance_m`` are counted as unmatched and left out of the matrix.
+As in the paper, correspondences are found among *all* points, and the pairs involving a
+point labelled 7 (scanning artefacts: moving objects and noise seen by one scan only) or 0
+(unlabelled) on either side are then left out: a point whose nearest neighbour in the
+other scan is an artefact is not matched. ``exclude_before_matching=True`` removes those
+points from both scans before the search instead (the neighbour found may then be a point
+further away). Points without a neighbour within ``max_distance_m`` are counted as
+unmatched and left out of the matrix.
 
 Scans are streamed once into XY tile stores (:class:`~semantic3d.spatial.store.TileStore`,
 spilling to disk past a memory budget) and matched tile by tile with a halo of
@@ -93,6 +97,7 @@ class AgreementResult:
     b_to_a: AgreementDirection
     max_distance_m: float
     excluded_values: tuple[int, ...] = EXCLUDED_VALUES
+    excluded_before_matching: bool = False
 
     @property
     def directions(self) -> tuple[AgreementDirection, AgreementDirection]:
@@ -100,8 +105,11 @@ class AgreementResult:
         return self.a_to_b, self.b_to_a
 
 
-def _spill_scan(writer: TileStoreWriter, chunks: Iterable[PointCloud], name: str) -> int:
-    """Bin a scan's points less the excluded labels; return how many were kept."""
+def _spill_scan(
+    writer: TileStoreWriter, chunks: Iterable[PointCloud], name: str, *, exclude: bool
+) -> int:
+    """Bin a scan's points (less the excluded labels when ``exclude``); return how many
+    points can receive a label (those not excluded)."""
     excluded = np.array(EXCLUDED_VALUES, dtype=np.uint8)
     kept = 0
     for chunk in chunks:
@@ -113,9 +121,17 @@ def _spill_scan(writer: TileStoreWriter, chunks: Iterable[PointCloud], name: str
                 f"found {int(chunk.labels.max())}"
             )
         keep = ~np.isin(chunk.labels, excluded)
-        writer.add(chunk, keep=keep)
+        writer.add(chunk, keep=keep if exclude else None)
         kept += int(keep.sum())
     return kept
+
+
+_EXCLUDED = np.array(EXCLUDED_VALUES, dtype=np.uint8)
+
+
+def _eligible(rows: NDArray[np.float64]) -> NDArray[np.bool_]:
+    """Rows whose own label can receive one (not unlabelled, not an artefact)."""
+    return ~np.isin(rows[:, 3], _EXCLUDED)
 
 
 def _rows(points: TilePoints) -> NDArray[np.float64]:
@@ -165,7 +181,10 @@ def _match_tile(
         # Exact filters: a receiving point with no source point in its 27 voxels cannot
         # match, and a source point with no receiving point in its 27 voxels is no one's
         # neighbour (voxels are at least max_distance_m wide).
-        receiving = _gather(core[receiver], grid.touching(marks[source], core_keys[receiver]))
+        receiving = _gather(
+            core[receiver],
+            grid.touching(marks[source], core_keys[receiver]) & _eligible(core[receiver]),
+        )
         giving = np.concatenate(
             [
                 _gather(core[source], grid.touching(marks[receiver], core_keys[source])),
@@ -184,8 +203,10 @@ def _match_tile(
             workers=-1 if receiving.shape[0] >= _PARALLEL_QUERIES else 1,
         )
         hit = np.flatnonzero(np.isfinite(distance))
-        own = np.take(receiving[:, 3], hit).astype(np.uint8)
         taken = np.take(giving[:, 3], np.take(index, hit)).astype(np.uint8)
+        valid = ~np.isin(taken, _EXCLUDED)  # the pair's other end is no artefact/unlabelled
+        hit, taken = hit[valid], taken[valid]
+        own = np.take(receiving[:, 3], hit).astype(np.uint8)
         # matrices[_B] collects A's labels onto B's points (direction A→B).
         matrices[receiver].update(own, taken)
         matched[receiver] = int(hit.size)
@@ -201,6 +222,7 @@ def compute_label_agreement(
     buffer_points: int = 1 << 24,
     spill_directory: Path | None = None,
     progress: AgreementProgress | None = None,
+    exclude_before_matching: bool = False,
 ) -> AgreementResult:
     """Transfer labels between two overlapping scans in both directions and score them.
 
@@ -211,6 +233,8 @@ def compute_label_agreement(
         buffer_points: points binned in memory before spilling to disk.
         spill_directory: where the temporary tile files go (system default when None).
         progress: called with tiles done and total while matching.
+        exclude_before_matching: remove labels 0 and 7 before the neighbour search
+            instead of leaving out the pairs involving them afterwards (the paper's order).
 
     Raises:
         ShapeError: a chunk has no labels or labels above 8.
@@ -223,16 +247,18 @@ def compute_label_agreement(
     matched = {_A: 0, _B: 0}
     grid = TileGrid.square(tile_size_m)
 
-    def spill(chunks: Iterable[PointCloud], name: str) -> TemporaryTileStore:
+    n_points = {_A: 0, _B: 0}  # points that can receive a label (not 0, not 7)
+
+    def spill(chunks: Iterable[PointCloud], scan: int) -> TemporaryTileStore:
         with TemporaryTileStore.writer(
             grid=grid, workdir=spill_directory, buffer_points=buffer_points
         ) as writer:
-            _spill_scan(writer, chunks, name)
+            name = "A" if scan == _A else "B"
+            n_points[scan] = _spill_scan(writer, chunks, name, exclude=exclude_before_matching)
             return TemporaryTileStore.adopt(writer.close(), spilled_points=writer.spilled_points)
 
-    with spill(a, "A") as store_a, spill(b, "B") as store_b:
+    with spill(a, _A) as store_a, spill(b, _B) as store_b:
         stores = {_A: store_a, _B: store_b}
-        n_points = {scan: stores[scan].n_points for scan in (_A, _B)}  # labels 0 and 7 left out
         tiles = sorted(set(store_a.tiles) | set(store_b.tiles))
         total = len(tiles)
         for done, tile in enumerate(tiles, start=1):
@@ -260,6 +286,7 @@ def compute_label_agreement(
         a_to_b=direction("A→B", _B),
         b_to_a=direction("B→A", _A),
         max_distance_m=max_distance_m,
+        excluded_before_matching=exclude_before_matching,
     )
 
 
@@ -274,6 +301,7 @@ def compute_label_agreement_files(
     buffer_points: int = 1 << 24,
     spill_directory: Path | None = None,
     progress: AgreementProgress | None = None,
+    exclude_before_matching: bool = False,
 ) -> AgreementResult:
     """:func:`compute_label_agreement` on two scans on disk (any format ``io`` reads)."""
     from semantic3d.io.formats import iter_points
@@ -286,4 +314,5 @@ def compute_label_agreement_files(
         buffer_points=buffer_points,
         spill_directory=spill_directory,
         progress=progress,
+        exclude_before_matching=exclude_before_matching,
     )
