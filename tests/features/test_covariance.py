@@ -8,8 +8,10 @@ import pytest
 from semantic3d.core.errors import ShapeError
 from semantic3d.features.covariance import (
     DEGENERATE_SUM_M2,
+    N_COVARIANCE_COLUMNS,
     compute_covariance_features,
     compute_eigen,
+    geometry_kernel,
 )
 from semantic3d.features.height import compute_height_features
 from semantic3d.features.names import COVARIANCE_FEATURES, MOMENT_FEATURES
@@ -157,6 +159,25 @@ def test_height_features_span_the_neighbourhood() -> None:
     points = np.array([[0, 0, 1.0], [0, 0, 3.0], [0, 0, 2.0]])
     got = compute_height_features(points, np.array([[0, 1, 2]], np.int64), np.array([[0, 0, 2.5]]))
     np.testing.assert_allclose(got, [[2.0, 1.5, 0.5]])
+
+
+@pytest.mark.parametrize("dtype", [np.int64, np.uint32])
+def test_the_fused_kernel_is_the_covariance_and_height_kernels_bit_for_bit(dtype: type) -> None:
+    rng = np.random.default_rng(7)
+    points = rng.normal(size=(500, 3)) * [5.0, 5.0, 0.5]
+    points[:40] = points[0]  # duplicate points: shapeless neighbourhoods
+    neighbours = np.sort(rng.integers(0, 500, size=(400, 10)), axis=1).astype(dtype)
+    neighbours[:20] = np.arange(10)
+    queries = points[rng.integers(0, 500, size=400)] + rng.normal(size=(400, 3)) * 0.1
+    fused = np.empty((400, N_COVARIANCE_COLUMNS + 3), np.float32)
+    geometry_kernel(points, neighbours, queries, fused)
+    separate = np.hstack(
+        [
+            compute_covariance_features(points, neighbours, queries),
+            compute_height_features(points, neighbours, queries),
+        ]
+    )
+    assert np.array_equal(fused.view(np.uint32), separate.view(np.uint32))
 
 
 @pytest.mark.parametrize(

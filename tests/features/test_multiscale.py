@@ -52,6 +52,8 @@ def test_columns_are_named_level_major() -> None:
         ({"base_voxel_size_m": 0.0}, "base_voxel_size_m"),
         ({"n_levels": 0}, "n_levels: expected 1..16"),
         ({"k_neighbours": 2}, "k_neighbours: expected 3..256"),
+        ({"n_levels": 2.5}, r"n_levels: expected 1..16, found 2\.5"),
+        ({"k_neighbours": True}, "k_neighbours: expected 3..256, found True"),
     ],
 )
 def test_bad_feature_config_is_rejected(kwargs: dict, match: str) -> None:

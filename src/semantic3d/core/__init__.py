@@ -1,4 +1,5 @@
-"""Core values shared by every layer: errors, the class map and the point cloud."""
+"""Core values shared by every layer: errors, the class map, the point cloud and the
+configuration loader (:mod:`semantic3d.core.config`)."""
 
 from __future__ import annotations
 
@@ -18,6 +19,7 @@ if TYPE_CHECKING:
         label_palette,
     )
     from semantic3d.core.errors import (
+        ConfigError,
         DataFormatError,
         DownloadError,
         MissingExtraError,
@@ -32,6 +34,7 @@ __all__ = [
     "LABEL_VALUES",
     "N_CLASSES",
     "UNLABELLED",
+    "ConfigError",
     "DataFormatError",
     "DownloadError",
     "MissingExtraError",
@@ -52,6 +55,7 @@ __getattr__, __dir__ = lazy_exports(
         "LABEL_VALUES": "semantic3d.core.classes",
         "N_CLASSES": "semantic3d.core.classes",
         "UNLABELLED": "semantic3d.core.classes",
+        "ConfigError": "semantic3d.core.errors",
         "DataFormatError": "semantic3d.core.errors",
         "DownloadError": "semantic3d.core.errors",
         "MissingExtraError": "semantic3d.core.errors",

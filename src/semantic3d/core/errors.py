@@ -30,6 +30,12 @@ class DataFormatError(Semantic3DError, ValueError):
         self.detail = message
 
 
+class ConfigError(Semantic3DError, ValueError):
+    """A configuration value or file is invalid; the message names the file, table and key
+    (``model.toml: [forest] max_depth: expected a positive integer or "none", found -3``).
+    """
+
+
 class ShapeError(Semantic3DError, ValueError):
     """Arrays handed to a function have the wrong shape, length or dtype."""
 

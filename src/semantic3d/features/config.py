@@ -1,17 +1,20 @@
-"""``FeatureConfig``: the settings of the multi-scale feature stage."""
+"""``FeatureConfig``: the settings of the multi-scale feature stage.
+
+The ``[features]`` table of a configuration file (see :mod:`semantic3d.core.config`);
+:class:`ConfigError` is the core one, re-exported here where it has always been.
+"""
 
 from __future__ import annotations
 
+import numbers
 from dataclasses import dataclass
 
-from semantic3d.core.errors import Semantic3DError
+from semantic3d.core.errors import ConfigError
 from semantic3d.features.names import column_names, level_feature_names
 
+__all__ = ["MAX_LEVELS", "ConfigError", "FeatureConfig"]
+
 MAX_LEVELS = 16
-
-
-class ConfigError(Semantic3DError, ValueError):
-    """A configuration value or file is invalid (the message names the key)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -44,10 +47,10 @@ class FeatureConfig:
                 f"base_voxel_size_m: expected a size in metres in (0, 1000), "
                 f"found {self.base_voxel_size_m}"
             )
-        if not 1 <= self.n_levels <= MAX_LEVELS:
-            raise ConfigError(f"n_levels: expected 1..{MAX_LEVELS}, found {self.n_levels}")
-        if not 3 <= self.k_neighbours <= 256:
-            raise ConfigError(f"k_neighbours: expected 3..256, found {self.k_neighbours}")
+        if not _is_integer(self.n_levels) or not 1 <= self.n_levels <= MAX_LEVELS:
+            raise ConfigError(f"n_levels: expected 1..{MAX_LEVELS}, found {self.n_levels!r}")
+        if not _is_integer(self.k_neighbours) or not 3 <= self.k_neighbours <= 256:
+            raise ConfigError(f"k_neighbours: expected 3..256, found {self.k_neighbours!r}")
 
     @property
     def voxel_sizes_m(self) -> tuple[float, ...]:
@@ -73,3 +76,7 @@ class FeatureConfig:
     def n_features(self) -> int:
         """Number of feature columns."""
         return self.n_levels * len(self.level_feature_names)
+
+
+def _is_integer(value: object) -> bool:
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)

@@ -22,6 +22,10 @@ moment2_axis1, moment2_axis2  ``Σ ((p_i - p) · e1)²``, ``Σ ((p_i - p) · e2)
 
 A neighbourhood whose spread is below ``1e-8`` m (``Σλ ≤ 1e-16`` m², e.g. duplicate points
 or a single voxel at a coarse level) has no shape: every column is 0.
+
+The height kernel of :mod:`semantic3d.features.height` is here too: ``geometry_kernel``,
+the per-level pass of the multi-scale features, inlines the covariance row and the height
+row, so one read of the neighbours gives the 13 columns above and the 3 height columns.
 """
 
 from __future__ import annotations
@@ -276,9 +280,25 @@ def covariance_kernel(
         _covariance_row(points, neighbours, queries, row, out)
 
 
+# Hand-written: one pass over the neighbour indices without an (m, k) gather temporary.
+@numba.njit(cache=True, nogil=True, parallel=True)
+def height_kernel(
+    points: NDArray[np.float64],
+    neighbours: NDArray[np.integer],
+    queries: NDArray[np.float64],
+    out: NDArray[np.float32],
+) -> None:  # pragma: no cover - compiled
+    """Write the 3 height columns of every query into ``out`` (unchecked inputs; see
+    :mod:`semantic3d.features.height`)."""
+    for row in numba.prange(neighbours.shape[0]):
+        _height_row(points, neighbours, queries, row, out, 0)
+
+
 # Hand-written: the covariance, moment and height columns of a level in one parallel pass
-# over the neighbour indices (one kernel launch and one read of the neighbours per level
-# instead of two); values are those of ``covariance_kernel`` and ``height_kernel``.
+# (one kernel launch per level instead of two). It inlines the rows of
+# ``covariance_kernel`` and ``height_kernel``, so its columns are theirs bit for bit. The
+# three kernels and their row functions stay in this one file: numba's cache does not see
+# changes to compiled functions defined in other files.
 @numba.njit(cache=True, nogil=True, parallel=True)
 def geometry_kernel(
     points: NDArray[np.float64],
@@ -287,19 +307,31 @@ def geometry_kernel(
     out: NDArray[np.float32],
 ) -> None:  # pragma: no cover - compiled
     """Write the 13 covariance/moment columns then the 3 height columns into ``out``."""
-    k = neighbours.shape[1]
     for row in numba.prange(neighbours.shape[0]):
         _covariance_row(points, neighbours, queries, row, out)
-        low = np.inf
-        high = -np.inf
-        for j in range(k):
-            z = points[neighbours[row, j], 2]
-            low = min(low, z)
-            high = max(high, z)
-        z = queries[row, 2]
-        out[row, N_COVARIANCE_COLUMNS] = high - low
-        out[row, N_COVARIANCE_COLUMNS + 1] = z - low
-        out[row, N_COVARIANCE_COLUMNS + 2] = high - z
+        _height_row(points, neighbours, queries, row, out, N_COVARIANCE_COLUMNS)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _height_row(
+    points: NDArray[np.float64],
+    neighbours: NDArray[np.integer],
+    queries: NDArray[np.float64],
+    row: int,
+    out: NDArray[np.float32],
+    column: int,
+) -> None:  # pragma: no cover - compiled
+    """The 3 height columns of query ``row`` into ``out[row, column:column + 3]``."""
+    low = np.inf
+    high = -np.inf
+    for j in range(neighbours.shape[1]):
+        z = points[neighbours[row, j], 2]
+        low = min(low, z)
+        high = max(high, z)
+    z = queries[row, 2]
+    out[row, column] = high - low
+    out[row, column + 1] = z - low
+    out[row, column + 2] = high - z
 
 
 @numba.njit(cache=True, nogil=True, inline="always")

@@ -5,18 +5,24 @@ For a query at height ``z`` whose neighbours span ``z_min..z_max``:
 ``height_above = z_max - z`` (columns of :data:`~semantic3d.features.names.HEIGHT_FEATURES`).
 A query need not be one of its neighbours (per-point mode), so ``height_below`` and
 ``height_above`` may be negative.
+
+The compiled kernel, :func:`~semantic3d.features.covariance.height_kernel`, lives beside
+the covariance kernel: the fused per-level ``geometry_kernel`` inlines the same row
+function, so the height columns of the multi-scale features are exactly these.
 """
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 from numpy.typing import NDArray
 
 from semantic3d.core.errors import ShapeError
+from semantic3d.features.covariance import height_kernel
 from semantic3d.features.names import HEIGHT_FEATURES
 
 N_HEIGHT_COLUMNS = len(HEIGHT_FEATURES)
+
+__all__ = ["N_HEIGHT_COLUMNS", "compute_height_features", "height_kernel"]
 
 
 def compute_height_features(
@@ -47,26 +53,3 @@ def compute_height_features(
     out = np.empty((neighbours.shape[0], N_HEIGHT_COLUMNS), np.float32)
     height_kernel(points, neighbours, queries, out)
     return out
-
-
-# Hand-written: one pass over the neighbour indices without an (m, k) gather temporary.
-@numba.njit(cache=True, nogil=True, parallel=True)
-def height_kernel(
-    points: NDArray[np.float64],
-    neighbours: NDArray[np.integer],
-    queries: NDArray[np.float64],
-    out: NDArray[np.float32],
-) -> None:  # pragma: no cover - compiled
-    """Write the 3 columns of every query into ``out`` (unchecked inputs)."""
-    m, k = neighbours.shape
-    for row in numba.prange(m):
-        low = np.inf
-        high = -np.inf
-        for j in range(k):
-            z = points[neighbours[row, j], 2]
-            low = min(low, z)
-            high = max(high, z)
-        z = queries[row, 2]
-        out[row, 0] = high - low
-        out[row, 1] = z - low
-        out[row, 2] = high - z

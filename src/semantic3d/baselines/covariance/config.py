@@ -1,7 +1,8 @@
 """Configuration of the covariance baseline: frozen dataclasses, loaded from one TOML file.
 
-Every section and key is optional; unknown sections or keys are rejected with the file,
-section and key named. TOML has no null: ``max_depth = "none"`` grows trees fully.
+Read by :mod:`semantic3d.core.config`: every section and key is optional, unknown sections
+or keys are rejected with the file, section and key named, types are checked strictly.
+TOML has no null: ``max_depth = "none"`` grows trees fully.
 
 .. code-block:: toml
 
@@ -28,17 +29,34 @@ section and key named. TOML has no null: ``max_depth = "none"`` grows trees full
 
 from __future__ import annotations
 
-import dataclasses
-import tomllib
+import numbers
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
+import semantic3d.core.config as config_file
 from semantic3d.core.classes import LABEL_VALUES
-from semantic3d.features.config import ConfigError, FeatureConfig
+from semantic3d.core.errors import ConfigError
+from semantic3d.features.config import FeatureConfig
 from semantic3d.features.tiling import DEFAULT_TILE_SIZE_M
 
-_NONE = "none"
+__all__ = [
+    "ConfigError",
+    "CovarianceConfig",
+    "ForestConfig",
+    "GridSearchConfig",
+    "PredictionConfig",
+    "SamplingConfig",
+    "config_from_dict",
+    "config_to_dict",
+    "load_config",
+]
+
+_MAX_FEATURES_NAMES = ("sqrt", "log2")
+
+MaxFeatures = str | float | int | None
+"""``max_features`` of the forest: ``"sqrt"``, ``"log2"``, a fraction in (0, 1], a count,
+or None (``"none"`` in a file) for all features."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -53,13 +71,13 @@ class ForestConfig:
     n_estimators: int = 50
     max_depth: int | None = 20
     min_samples_leaf: int = 1
-    max_features: str | float | int = "sqrt"
+    max_features: MaxFeatures = "sqrt"
 
     def __post_init__(self) -> None:
-        _check_positive("forest.n_estimators", self.n_estimators)
-        if self.max_depth is not None:
-            _check_positive("forest.max_depth", self.max_depth)
-        _check_positive("forest.min_samples_leaf", self.min_samples_leaf)
+        _check_positive("n_estimators", self.n_estimators)
+        _check_max_depth("max_depth", self.max_depth)
+        _check_positive("min_samples_leaf", self.min_samples_leaf)
+        _check_max_features("max_features", self.max_features)
 
 
 @dataclass(frozen=True, slots=True)
@@ -79,12 +97,12 @@ class SamplingConfig:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        _check_positive("sampling.points_per_class", self.points_per_class)
+        _check_positive("points_per_class", self.points_per_class)
         bad = [c for c in self.classes if c not in LABEL_VALUES]
         if bad:
-            raise ConfigError(
-                f"sampling.classes: expected label values in {LABEL_VALUES}, found {bad}"
-            )
+            raise ConfigError(f"classes: expected label values in {LABEL_VALUES}, found {bad}")
+        if not _is_integer(self.seed) or self.seed < 0:
+            raise ConfigError(f"seed: expected a non-negative integer, found {self.seed!r}")
 
 
 @dataclass(frozen=True, slots=True)
@@ -104,11 +122,11 @@ class PredictionConfig:
 
     def __post_init__(self) -> None:
         if not self.tile_size_m > 0:
-            raise ConfigError(f"prediction.tile_size_m: expected > 0, found {self.tile_size_m}")
-        _check_positive("prediction.chunk_size", self.chunk_size)
-        if self.max_points_in_memory < 0:
+            raise ConfigError(f"tile_size_m: expected > 0, found {self.tile_size_m}")
+        _check_positive("chunk_size", self.chunk_size)
+        if not _is_integer(self.max_points_in_memory) or self.max_points_in_memory < 0:
             raise ConfigError(
-                f"prediction.max_points_in_memory: expected >= 0, found {self.max_points_in_memory}"
+                f"max_points_in_memory: expected >= 0, found {self.max_points_in_memory!r}"
             )
 
 
@@ -119,16 +137,24 @@ class GridSearchConfig:
     n_estimators: tuple[int, ...] = (25, 50, 100)
     max_depth: tuple[int | None, ...] = (6, 10, 20, None)
     min_samples_leaf: tuple[int, ...] = (1,)
-    max_features: tuple[str | float | int, ...] = ("sqrt",)
+    max_features: tuple[MaxFeatures, ...] = ("sqrt",)
     n_splits: int = 5
     scoring: str = "jaccard_macro"
 
     def __post_init__(self) -> None:
-        if self.n_splits < 2:
-            raise ConfigError(f"grid_search.n_splits: expected >= 2, found {self.n_splits}")
+        if not _is_integer(self.n_splits) or self.n_splits < 2:
+            raise ConfigError(f"n_splits: expected >= 2, found {self.n_splits!r}")
         for name in ("n_estimators", "max_depth", "min_samples_leaf", "max_features"):
             if not getattr(self, name):
-                raise ConfigError(f"grid_search.{name}: expected at least one value")
+                raise ConfigError(f"{name}: expected at least one value")
+        for index, value in enumerate(self.n_estimators):
+            _check_positive(f"n_estimators[{index}]", value)
+        for index, depth in enumerate(self.max_depth):
+            _check_max_depth(f"max_depth[{index}]", depth)
+        for index, value in enumerate(self.min_samples_leaf):
+            _check_positive(f"min_samples_leaf[{index}]", value)
+        for index, choice in enumerate(self.max_features):
+            _check_max_features(f"max_features[{index}]", choice)
 
     @property
     def param_grid(self) -> dict[str, list[Any]]:
@@ -152,107 +178,43 @@ class CovarianceConfig:
     grid_search: GridSearchConfig = field(default_factory=GridSearchConfig)
 
 
-_SECTIONS: dict[str, type[Any]] = {
-    "features": FeatureConfig,
-    "forest": ForestConfig,
-    "sampling": SamplingConfig,
-    "prediction": PredictionConfig,
-    "grid_search": GridSearchConfig,
-}
-
-
 def load_config(path: str | Path) -> CovarianceConfig:
     """Read a TOML configuration; raises :class:`ConfigError` naming the file and key."""
-    path = Path(path)
-    try:
-        with path.open("rb") as stream:
-            data = tomllib.load(stream)
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read the configuration: {exc.strerror}") from exc
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: not valid TOML: {exc}") from exc
-    return config_from_dict(data, source=str(path))
+    return config_file.read_config(path, CovarianceConfig)
 
 
 def config_from_dict(data: dict[str, Any], *, source: str = "config") -> CovarianceConfig:
     """Build a configuration from nested dicts (TOML / JSON shape); unknown keys rejected."""
-    unknown = sorted(set(data) - set(_SECTIONS))
-    if unknown:
-        raise ConfigError(
-            f"{source}: unknown section(s) {unknown}: expected some of {sorted(_SECTIONS)}"
-        )
-    sections: dict[str, Any] = {}
-    for name, cls in _SECTIONS.items():
-        values = data.get(name, {})
-        if not isinstance(values, dict):
-            raise ConfigError(f"{source}: [{name}]: expected a table, found {values!r}")
-        sections[name] = _build_section(cls, values, where=f"{source}: [{name}]")
-    return CovarianceConfig(**sections)
+    return config_file.config_from_dict(data, CovarianceConfig, source=source)
 
 
 def config_to_dict(config: CovarianceConfig) -> dict[str, dict[str, Any]]:
     """The configuration as nested dicts (``None`` written as ``"none"``, tuples as lists)."""
-    return {
-        name: {
-            f.name: _to_plain(getattr(getattr(config, name), f.name))
-            for f in dataclasses.fields(cls)
-        }
-        for name, cls in _SECTIONS.items()
-    }
+    return cast("dict[str, dict[str, Any]]", config_file.config_to_dict(config))
 
 
-def _build_section(cls: type[Any], values: dict[str, Any], *, where: str) -> Any:
-    fields = {f.name: f for f in dataclasses.fields(cls)}
-    unknown = sorted(set(values) - set(fields))
-    if unknown:
-        raise ConfigError(f"{where}: unknown key(s) {unknown}: expected some of {sorted(fields)}")
-    kwargs: dict[str, Any] = {}
-    for key, value in values.items():
-        default = getattr(cls(), key)
-        kwargs[key] = _coerce(value, default, where=f"{where} {key}")
-    try:
-        return cls(**kwargs)
-    except ConfigError as exc:
-        raise ConfigError(f"{where}: {exc}") from None
+def _is_integer(value: object) -> bool:
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
 
 
-def _coerce(value: Any, default: Any, *, where: str) -> Any:
-    """Check ``value`` against the type of ``default`` (tuples element-wise)."""
-    if isinstance(default, tuple):
-        if not isinstance(value, list | tuple):
-            raise ConfigError(f"{where}: expected a list, found {value!r}")
-        return tuple(_scalar(v, where=where) for v in value)
-    scalar = _scalar(value, where=where)
-    if isinstance(default, bool):
-        if not isinstance(scalar, bool):
-            raise ConfigError(f"{where}: expected true or false, found {value!r}")
-    elif isinstance(default, float):
-        if isinstance(scalar, bool) or not isinstance(scalar, int | float):
-            raise ConfigError(f"{where}: expected a number, found {value!r}")
-        return float(scalar)
-    elif isinstance(default, int) and (isinstance(scalar, bool) or not isinstance(scalar, int)):
-        if scalar is None and where.endswith("max_depth"):
-            return None
-        raise ConfigError(f"{where}: expected an integer, found {value!r}")
-    return scalar
-
-
-def _scalar(value: Any, *, where: str) -> Any:
-    if isinstance(value, str) and value.lower() == _NONE:
-        return None
-    if isinstance(value, dict | list):
-        raise ConfigError(f"{where}: expected a single value, found {value!r}")
-    return value
-
-
-def _to_plain(value: Any) -> Any:
-    if value is None:
-        return _NONE
-    if isinstance(value, tuple):
-        return [_to_plain(v) for v in value]
-    return value
-
-
-def _check_positive(name: str, value: int) -> None:
-    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+def _check_positive(name: str, value: object) -> None:
+    if not _is_integer(value) or value < 1:  # type: ignore[operator]
         raise ConfigError(f"{name}: expected a positive integer, found {value!r}")
+
+
+def _check_max_depth(name: str, value: object) -> None:
+    if value is not None and (not _is_integer(value) or value < 1):  # type: ignore[operator]
+        raise ConfigError(f'{name}: expected a positive integer or "none", found {value!r}')
+
+
+def _check_max_features(name: str, value: object) -> None:
+    if value is None or value in _MAX_FEATURES_NAMES:
+        return
+    if _is_integer(value) and value >= 1:  # type: ignore[operator]
+        return
+    if isinstance(value, float) and 0.0 < value <= 1.0:
+        return
+    raise ConfigError(
+        f'{name}: expected "sqrt", "log2", "none", a fraction in (0, 1] or a positive '
+        f"integer, found {value!r}"
+    )

@@ -32,7 +32,7 @@ class CovarianceClassifier(_sklearn_base.ClassifierMixin, _sklearn_base.BaseEsti
         n_estimators: number of trees.
         max_depth: maximum tree depth (None: grow until leaves are pure).
         min_samples_leaf: minimum samples in a leaf.
-        max_features: features tried per split (``"sqrt"``, a fraction or a count).
+        max_features: features tried per split (``"sqrt"``, a fraction, a count, or None: all).
         class_weight: passed to the forest (training data are already class-balanced
             by :func:`~semantic3d.baselines.covariance.training.sample_training_points`).
         n_jobs: threads for fitting (None: 1, -1: all cores).
@@ -52,7 +52,7 @@ class CovarianceClassifier(_sklearn_base.ClassifierMixin, _sklearn_base.BaseEsti
         *,
         max_depth: int | None = None,
         min_samples_leaf: int = 1,
-        max_features: str | float | int = "sqrt",
+        max_features: str | float | int | None = "sqrt",
         class_weight: str | dict[Any, float] | None = None,
         n_jobs: int | None = None,
         random_state: int | None = None,

@@ -2,8 +2,12 @@
 
 from __future__ import annotations
 
-from semantic3d.core.errors import Semantic3DError
+from semantic3d.core.errors import ConfigError
 
 
-class SimulationConfigError(Semantic3DError, ValueError):
-    """An argument or a scene description is invalid (unknown scene, ``n_points <= 0``, ...)."""
+class SimulationConfigError(ConfigError):
+    """An argument or a scene description is invalid (unknown scene, ``n_points <= 0``, ...).
+
+    A :class:`~semantic3d.core.errors.ConfigError` (and so a ``ValueError``): callers that
+    handle bad configuration handle the simulator's too.
+    """
