@@ -17,20 +17,11 @@ from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import BinaryIO
 
-import numba
 import numpy as np
 
 from semantic3d.core.errors import DataFormatError
 from semantic3d.core.pointcloud import PointCloud
-from semantic3d.io import _ascii_kernels as kernels
-from semantic3d.io.chunks import (
-    DEFAULT_BLOCK_BYTES,
-    DEFAULT_CHUNK_SIZE,
-    iter_line_blocks,
-    line_text,
-    rechunk,
-    validate_chunk_size,
-)
+from semantic3d.io.chunks import DEFAULT_CHUNK_SIZE, validate_chunk_size
 from semantic3d.io.labels import attach_labels, format_labels_bytes
 from semantic3d.io.staging import StagedPath, StagedWriter, write_chunks
 
@@ -44,6 +35,9 @@ __all__ = [
 ]
 
 COLUMNS = ("x", "y", "z", "intensity", "r", "g", "b")
+DEFAULT_WINDOW_BYTES = 8 << 20
+"""Bytes of text parsed per call of the compiled kernel (split over all cores)."""
+MAX_DECIMALS = 9
 _FORMAT_BATCH = 1 << 17
 
 
@@ -52,16 +46,21 @@ def iter_ascii_points(
     *,
     chunk_size: int = DEFAULT_CHUNK_SIZE,
     labels_path: str | Path | None = None,
-    block_bytes: int = DEFAULT_BLOCK_BYTES,
+    block_bytes: int = DEFAULT_WINDOW_BYTES,
 ) -> Iterator[PointCloud]:
     """Stream the points of ``path`` in chunks of exactly ``chunk_size`` (the last may be shorter).
 
     With ``labels_path``, each chunk carries its labels; a label file with a different
     number of lines raises :class:`~semantic3d.core.errors.DataFormatError`.
+    ``block_bytes`` is how much text one call of the compiled parser takes (a tuning
+    knob; results do not depend on it). Memory stays bounded by the chunks and one window
+    whatever the file size.
     """
+    from semantic3d.io._point_reader import iter_point_batches
+
     chunk_size = validate_chunk_size(chunk_size)
     path = Path(path)
-    clouds = rechunk(_iter_point_blocks(path, block_bytes), chunk_size, PointCloud.concatenate)
+    clouds = iter_point_batches(path, chunk_size, block_bytes)
     if labels_path is None:
         return clouds
     return attach_labels(path, clouds, Path(labels_path), chunk_size=chunk_size)
@@ -89,8 +88,8 @@ class AsciiPointWriter(StagedWriter):
     def __init__(
         self, path: str | Path, *, labels_path: str | Path | None = None, decimals: int = 3
     ) -> None:
-        if not 0 <= decimals <= kernels.MAX_DECIMALS:
-            raise ValueError(f"decimals must be in 0..{kernels.MAX_DECIMALS}, found {decimals}")
+        if not 0 <= decimals <= MAX_DECIMALS:
+            raise ValueError(f"decimals must be in 0..{MAX_DECIMALS}, found {decimals}")
         self.path = Path(path)
         self.labels_path = None if labels_path is None else Path(labels_path)
         self.decimals = decimals
@@ -120,6 +119,10 @@ class AsciiPointWriter(StagedWriter):
         self.n_points += cloud.n_points
 
     def _write_batch(self, batch: PointCloud) -> None:
+        import numba
+
+        from semantic3d.io import _ascii_kernels as kernels
+
         xyz = np.ascontiguousarray(batch.xyz)
         if not np.isfinite(xyz).all() or np.abs(xyz).max(initial=0.0) >= self._limit:
             bad = int(np.flatnonzero(~(np.abs(xyz) < self._limit).all(axis=1))[0])
@@ -177,40 +180,3 @@ def write_ascii_points(
 ) -> int:
     """Write point chunks to ``path`` (and their labels to ``labels_path``); return the count."""
     return write_chunks(open_ascii_writer(path, labels_path=labels_path, decimals=decimals), chunks)
-
-
-def _iter_point_blocks(path: Path, block_bytes: int) -> Iterator[PointCloud]:
-    first_line = 1
-    n_segments = numba.get_num_threads() * 4
-    for block in iter_line_blocks(path, block_bytes=block_bytes):
-        segments = max(1, min(n_segments, block.size // 65536))
-        xyz, intensity, rgb, status, bad_row = kernels.parse_points(block, segments, kernels._POW10)
-        if status != kernels.OK:
-            raise _point_error(path, block, int(status), int(bad_row), first_line)
-        first_line += xyz.shape[0]
-        yield PointCloud(xyz, intensity, rgb)
-
-
-def _point_error(
-    path: Path, block: np.ndarray, status: int, bad_row: int, first_line: int
-) -> DataFormatError:
-    text = line_text(block, bad_row)
-    tokens = text.split()
-    if status == kernels.COLUMN_COUNT:
-        detail = f"expected {len(COLUMNS)} columns ({' '.join(COLUMNS)}), found {len(tokens)}"
-    elif status == kernels.BAD_NUMBER:
-        bad = next((t for t in tokens if not _is_number(t)), text)
-        detail = f"expected numbers in every column, found {bad!r}"
-    elif status == kernels.NOT_INTEGER:
-        bad = next((t for t in tokens[3:] if _is_number(t) and float(t) % 1), "")
-        detail = f"expected integer intensity and colour values, found {bad!r}"
-    else:
-        detail = f"expected r g b in 0..255 and an int32 intensity, found {' '.join(tokens[3:7])!r}"
-    return DataFormatError(detail, path=str(path), line=first_line + bad_row)
-
-
-def _is_number(token: str) -> bool:
-    try:
-        return np.isfinite(float(token))
-    except ValueError:
-        return False

@@ -1,0 +1,331 @@
+"""The streaming driver of the ASCII point parser (:mod:`semantic3d.io._ascii_kernels`).
+
+A regular file is memory-mapped (no copy out of the page cache), advised sequential, and
+parsed in windows of whole lines straight into the output arrays of the current batch;
+pages behind the cursor are dropped from the mapping so resident memory stays flat
+whatever the file size. Anything that cannot be mapped (a pipe) is read in blocks of
+whole lines instead. Batches hold a whole number of chunks, so chunks are slices of
+them: exact ``chunk_size`` without joining pieces.
+
+Python runs once per window (megabytes), never per line: it only resolves what the
+kernel defers (tokens needing the general float algorithm) and turns the first problem
+into a :class:`~semantic3d.core.errors.DataFormatError` naming file, line, expected and
+found.
+"""
+
+from __future__ import annotations
+
+import mmap
+import re
+from collections.abc import Callable, Generator, Iterator
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import suppress
+from pathlib import Path
+from typing import Any, TypeVar
+
+import numba
+import numpy as np
+
+from semantic3d.core.errors import DataFormatError
+from semantic3d.core.pointcloud import PointCloud
+from semantic3d.io import _ascii_kernels as kernels
+from semantic3d.io.chunks import iter_line_blocks
+
+COLUMNS = ("x", "y", "z", "intensity", "r", "g", "b")
+MAX_LINE_BYTES = 1 << 20
+"""A longer line means the file is binary or not line based."""
+MIN_LINE_BYTES = 14
+"""``0 0 0 0 0 0 0\\n``: bounds the number of rows a byte range can hold."""
+MIN_BATCH_ROWS = 1 << 16
+_SEGMENT_BYTES = 1 << 16  # the least worth a thread
+_SLOW_CAPACITY = 4096  # deferred tokens per segment before it pauses for conversion
+_TOKEN_WIDTH = 64
+_RELEASE_BYTES = 16 << 20
+T = TypeVar("T")
+_Region = tuple[np.ndarray, int, int, int]
+"""A buffer, the range of whole lines to parse in it, and how far it may be read."""
+_NUMBER = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?\Z", re.ASCII)
+
+
+def iter_point_batches(path: Path, chunk_size: int, window_bytes: int) -> Iterator[PointCloud]:
+    """Chunks of exactly ``chunk_size`` points of ``path`` (the last may be shorter)."""
+    reader = _Reader(path, chunk_size, window_bytes)
+    size = path.stat().st_size
+    with path.open("rb", buffering=0) as stream:
+        mapped = _map(stream, size)
+        if mapped is None:
+            regions = _block_regions(path, window_bytes)
+        else:
+            regions = _mapped_regions(path, mapped, size)
+        try:
+            yield from reader.run(regions, size if mapped is not None else None)
+        finally:
+            regions.close()
+            if mapped is not None:
+                with suppress(BufferError):
+                    mapped.close()
+
+
+class _Batch:
+    def __init__(self, capacity: int) -> None:
+        self.xyz = np.empty((capacity, 3), np.float64)
+        self.intensity = np.empty(capacity, np.int32)
+        self.rgb = np.empty((capacity, 3), np.uint8)
+        self.capacity = capacity
+        self.filled = 0
+
+    def chunks(self, chunk_size: int) -> Iterator[PointCloud]:
+        for start in range(0, self.filled, chunk_size):
+            stop = min(start + chunk_size, self.filled)
+            yield PointCloud(self.xyz[start:stop], self.intensity[start:stop], self.rgb[start:stop])
+
+
+class _Reader:
+    def __init__(self, path: Path, chunk_size: int, window_bytes: int) -> None:
+        self.path = path
+        self.chunk_size = chunk_size
+        self.window_bytes = max(int(window_bytes), 1)
+        self.batch_rows = chunk_size * max(1, -(-MIN_BATCH_ROWS // chunk_size))
+        self.max_segments = max(1, numba.get_num_threads() * 4)
+        self.slow = np.empty((self.max_segments, _SLOW_CAPACITY, 4), np.int64)
+        self.state = np.zeros((self.max_segments, kernels.STATE_SIZE), np.int64)
+        self.lines_before = 0  # lines of earlier batches
+        self.bytes_left: int | None = None
+
+    def run(self, regions: Iterator[_Region], size: int | None) -> Iterator[PointCloud]:
+        self.bytes_left = size
+        batch = self._new_batch()
+        for buf, start, stop, readable in regions:
+            pos = start
+            while pos < stop:
+                if batch.filled == batch.capacity:
+                    yield from batch.chunks(self.chunk_size)
+                    self.lines_before += batch.filled
+                    batch = self._new_batch()
+                pos = self._parse_window(buf, readable, pos, stop, batch)
+        if batch.filled:
+            yield from batch.chunks(self.chunk_size)
+
+    def consumed(self, n_bytes: int) -> None:
+        if self.bytes_left is not None:
+            self.bytes_left -= n_bytes
+
+    def _new_batch(self) -> _Batch:
+        capacity = self.batch_rows
+        if self.bytes_left is not None:  # a small file (or its end) needs a small batch
+            capacity = min(capacity, (self.bytes_left + 1) // MIN_LINE_BYTES + 1)
+        return _Batch(capacity)
+
+    def _parse_window(
+        self, buf: np.ndarray, readable: int, pos: int, stop: int, batch: _Batch
+    ) -> int:
+        window_stop = kernels.window_end(buf, pos, pos + self.window_bytes, stop, MAX_LINE_BYTES)
+        if window_stop < 0:
+            raise _long_line_error(self.path)
+        n_segments = int(max(1, min(self.max_segments, (window_stop - pos) // _SEGMENT_BYTES)))
+        bounds, counts = self._count(buf, pos, window_stop, n_segments)
+        room = batch.capacity - batch.filled
+        if counts.sum() > room:
+            window_stop = kernels.after_newline(buf, pos, room)
+            bounds, counts = self._count(buf, pos, window_stop, n_segments)
+        rows = batch.filled + np.concatenate([[0], np.cumsum(counts)])
+        self.state[:n_segments, : kernels.STATE_END] = _in_parallel(
+            kernels.parse_segment,
+            [
+                (
+                    buf,
+                    readable,
+                    int(bounds[s]),
+                    int(bounds[s + 1]),
+                    int(rows[s]),
+                    batch.xyz,
+                    batch.intensity,
+                    batch.rgb,
+                    self.slow[s],
+                )
+                for s in range(n_segments)
+            ],
+        )
+        self.state[:n_segments, kernels.STATE_END] = bounds[1:]
+        state = self.state[:n_segments]
+        if state[:, kernels.STATE_STATUS].any() or state[:, kernels.STATE_SLOW].any():
+            for segment in range(n_segments):
+                self._resolve(buf, readable, segment, batch)
+        batch.filled += int(counts.sum())
+        self.consumed(window_stop - pos)
+        return int(window_stop)
+
+    def _count(
+        self, buf: np.ndarray, start: int, stop: int, n_segments: int
+    ) -> tuple[np.ndarray, np.ndarray]:
+        bounds = kernels.segment_bounds(buf, start, stop, n_segments)
+        jobs = [(buf, int(bounds[s]), int(bounds[s + 1])) for s in range(n_segments)]
+        return bounds, np.array(_in_parallel(kernels.count_lines, jobs), np.int64)
+
+    def _resolve(self, buf: np.ndarray, readable: int, segment: int, batch: _Batch) -> None:
+        """Convert a segment's deferred tokens, resume it when it paused, raise its problem."""
+        status, pos, row, n_slow, end = (int(v) for v in self.state[segment])
+        slow = self.slow[segment]
+        while True:
+            if n_slow:
+                self._convert(buf, slow[:n_slow], batch)
+            if status == kernels.SLOW_FULL:
+                status, pos, row, n_slow = kernels.parse_segment(
+                    buf, readable, pos, end, row, batch.xyz, batch.intensity, batch.rgb, slow
+                )
+                continue
+            if status != kernels.OK:
+                raise _point_error(self.path, _line_at(buf, pos), status, self._line(row))
+            return
+
+    def _convert(self, buf: np.ndarray, slow: np.ndarray, batch: _Batch) -> None:
+        """Exact values of deferred tokens (CPython's correctly rounded ``dtoa``, via numpy)."""
+        table = kernels.gather_tokens(buf, slow, _TOKEN_WIDTH)
+        values = table.view(f"S{_TOKEN_WIDTH}").ravel().astype(np.float64)
+        lengths = slow[:, kernels.SLOW_STOP] - slow[:, kernels.SLOW_START]
+        for i in np.flatnonzero(lengths > _TOKEN_WIDTH):
+            start, stop = int(slow[i, kernels.SLOW_START]), int(slow[i, kernels.SLOW_STOP])
+            values[i] = float(bytes(buf[start:stop]))
+        rows, columns = slow[:, kernels.SLOW_ROW], slow[:, kernels.SLOW_COLUMN]
+        problem = np.where(np.isfinite(values), kernels.OK, kernels.NON_FINITE)
+        integer = columns >= 3
+        with np.errstate(invalid="ignore"):
+            fraction = integer & (problem == kernels.OK) & (values != np.floor(values))
+            problem[fraction] = kernels.NOT_INTEGER
+            low = np.where(columns == 3, -2147483648.0, 0.0)
+            high = np.where(columns == 3, 2147483647.0, 255.0)
+            outside = integer & (problem == kernels.OK) & ((values < low) | (values > high))
+        problem[outside] = kernels.OUT_OF_RANGE
+        bad = np.flatnonzero(problem)
+        if bad.size:
+            first = int(bad[np.argmin(rows[bad])])
+            raise _point_error(
+                self.path,
+                _line_at(buf, int(slow[first, kernels.SLOW_START])),
+                int(problem[first]),
+                self._line(int(rows[first])),
+            )
+        coordinate = ~integer
+        batch.xyz[rows[coordinate], columns[coordinate]] = values[coordinate]
+        intensity = columns == 3
+        batch.intensity[rows[intensity]] = values[intensity].astype(np.int32)
+        colour = columns > 3
+        batch.rgb[rows[colour], columns[colour] - 4] = values[colour].astype(np.uint8)
+
+    def _line(self, row: int) -> int:
+        return self.lines_before + row + 1
+
+
+_POOL: ThreadPoolExecutor | None = None
+
+
+def _in_parallel(function: Callable[..., T], jobs: list[tuple[Any, ...]]) -> list[T]:
+    """``function(*job)`` for every job, on all cores; results in job order.
+
+    The kernels release the GIL, so threads run them in parallel; queued jobs go to
+    whichever worker is free, so a loaded machine still balances.
+    """
+    global _POOL
+    if len(jobs) == 1:
+        return [function(*jobs[0])]
+    if _POOL is None:
+        _POOL = ThreadPoolExecutor(max_workers=numba.get_num_threads())
+    futures = [_POOL.submit(function, *job) for job in jobs]
+    return [future.result() for future in futures]
+
+
+def _map(stream: object, size: int) -> mmap.mmap | None:
+    """A read-only map of the file, or None when it cannot be mapped (a pipe, size 0)."""
+    if size == 0:
+        return None
+    try:
+        mapped = mmap.mmap(stream.fileno(), 0, access=mmap.ACCESS_READ)  # type: ignore[attr-defined]
+    except (OSError, ValueError):
+        return None
+    with suppress(OSError, AttributeError):
+        mapped.madvise(mmap.MADV_SEQUENTIAL)
+    return mapped
+
+
+def _mapped_regions(path: Path, mapped: mmap.mmap, size: int) -> Generator[_Region, None, None]:
+    """The mapped file up to its last newline, then (padded copy) a last line without one."""
+    body_end = mapped.rfind(b"\n") + 1
+    if size - body_end > MAX_LINE_BYTES:
+        raise _long_line_error(path)
+    buf = np.frombuffer(mapped, np.uint8)
+    try:
+        if body_end:
+            yield from _released(mapped, buf, body_end, size)
+        if body_end < size:
+            tail = mapped[body_end:size] + b"\n" + bytes(kernels.FAST_MARGIN)
+            padded = np.frombuffer(tail, np.uint8)
+            yield padded, 0, size - body_end + 1, padded.size
+    finally:
+        del buf
+
+
+def _released(mapped: mmap.mmap, buf: np.ndarray, body_end: int, size: int) -> Iterator[_Region]:
+    """Yield the body in steps, dropping the pages behind the cursor from the mapping.
+
+    Dropped pages stay in the page cache; they only stop counting as this process's
+    resident memory (a 17 GB scan would otherwise look like a 17 GB process).
+    """
+    released = 0
+    start = 0
+    while start < body_end:
+        stop = min(start + _RELEASE_BYTES, body_end)
+        if stop < body_end:  # whole lines only: extend to the next newline
+            stop = mapped.find(b"\n", stop - 1) + 1
+        ahead = stop - stop % mmap.PAGESIZE
+        with suppress(OSError, ValueError):
+            mapped.madvise(mmap.MADV_WILLNEED, ahead, min(_RELEASE_BYTES, size - ahead))
+        yield buf, start, stop, size
+        keep = stop - stop % mmap.PAGESIZE
+        if keep > released:
+            with suppress(OSError, ValueError):
+                mapped.madvise(mmap.MADV_DONTNEED, released, keep - released)
+            released = keep
+        start = stop
+
+
+def _block_regions(path: Path, block_bytes: int) -> Generator[_Region, None, None]:
+    for block in iter_line_blocks(path, block_bytes=max(block_bytes, 1 << 16)):
+        view = block.view()
+        view.flags.writeable = False
+        yield view, 0, view.size, view.size
+
+
+def _line_at(buf: np.ndarray, pos: int, limit: int = 200) -> str:
+    """The text of the line holding ``pos`` (at most ``limit`` bytes), for messages."""
+    start = pos
+    while start > 0 and buf[start - 1] != 10 and pos - start < MAX_LINE_BYTES:
+        start -= 1
+    stop = start
+    while stop < buf.size and buf[stop] != 10 and stop - start < limit:
+        stop += 1
+    return bytes(buf[start:stop]).decode("utf-8", errors="replace").rstrip("\r")
+
+
+def _long_line_error(path: Path) -> DataFormatError:
+    return DataFormatError(
+        f"expected text lines, found a line longer than {MAX_LINE_BYTES} bytes (binary data?)",
+        path=str(path),
+    )
+
+
+def _point_error(path: Path, text: str, status: int, line: int) -> DataFormatError:
+    tokens = text.split()
+    if status == kernels.COLUMN_COUNT:
+        detail = f"expected {len(COLUMNS)} columns ({' '.join(COLUMNS)}), found {len(tokens)}"
+    elif status == kernels.BAD_NUMBER:
+        bad = next((t for t in tokens if not _NUMBER.match(t)), text)
+        detail = f"expected numbers in every column, found {bad!r}"
+    elif status == kernels.NON_FINITE:
+        bad = next((t for t in tokens if not np.isfinite(float(t))), text)
+        detail = f"expected finite numbers (within float64) in every column, found {bad!r}"
+    elif status == kernels.NOT_INTEGER:
+        bad = next((t for t in tokens[3:] if float(t) % 1), "")
+        detail = f"expected integer intensity and colour values, found {bad!r}"
+    else:
+        detail = f"expected r g b in 0..255 and an int32 intensity, found {' '.join(tokens[3:7])!r}"
+    return DataFormatError(detail, path=str(path), line=line)
