@@ -53,3 +53,22 @@ def test_ruff_format_is_clean() -> None:
 def test_layers_point_one_way() -> None:
     result = subprocess.run([_tool("lint-imports")], cwd=ROOT, capture_output=True, text=True)
     assert result.returncode == 0, result.stdout + result.stderr
+
+
+def test_io_modules_import_no_cycle() -> None:
+    """No import cycle among the io modules: the cache format never imports the format
+    dispatch that reads caches (io/conversion holds what needs both)."""
+    grimp = pytest.importorskip("grimp")
+    graph = grimp.build_graph("semantic3d")
+    modules = sorted(graph.find_children("semantic3d.io"))
+    imports = {
+        module: {m for m in graph.find_modules_directly_imported_by(module) if m in modules}
+        for module in modules
+    }
+    assert "semantic3d.io.formats" not in imports["semantic3d.io.cache"]
+
+    def reaches(start: str, goal: str, seen: set[str]) -> bool:
+        return any(nxt == goal or reaches(nxt, goal, seen | {nxt}) for nxt in imports[start] - seen)
+
+    cycles = [module for module in modules if reaches(module, module, set())]
+    assert cycles == []

@@ -14,7 +14,6 @@ from semantic3d.io.ascii import write_ascii_points
 from semantic3d.io.cache import (
     CACHE_FORMAT_VERSION,
     SourceInfo,
-    build_cache,
     is_cache_current,
     iter_cache,
     open_cache,
@@ -22,6 +21,7 @@ from semantic3d.io.cache import (
     read_cache,
     write_cache,
 )
+from semantic3d.io.conversion import build_cache
 from semantic3d.io.formats import read_points
 from semantic3d.io.labels import write_labels
 from tests.factories import ROUND_TRIP, clouds, random_cloud, split

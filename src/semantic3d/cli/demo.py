@@ -65,7 +65,7 @@ def demo(
 def _real_samples(data: Path, out: Path) -> None:
     from rich.table import Table
 
-    from semantic3d.io.cache import build_cache
+    from semantic3d.io.conversion import build_cache
     from semantic3d.io.formats import iter_points, summarize_points, write_points
 
     ui.console.rule("1. real labelled samples")

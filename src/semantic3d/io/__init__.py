@@ -19,6 +19,7 @@ if TYPE_CHECKING:
         write_ascii_points,
     )
     from semantic3d.io.chunks import DEFAULT_CHUNK_SIZE, rechunk
+    from semantic3d.io.conversion import build_cache
     from semantic3d.io.formats import (
         PointFormat,
         detect_format,
@@ -42,6 +43,7 @@ __all__ = [
     "LabelStream",
     "PointFormat",
     "attach_labels",
+    "build_cache",
     "count_labels",
     "detect_format",
     "iter_ascii_points",
@@ -66,6 +68,7 @@ __getattr__, __dir__ = lazy_exports(
         "LabelStream": "semantic3d.io.labelstream",
         "PointFormat": "semantic3d.io.formats",
         "attach_labels": "semantic3d.io.labels",
+        "build_cache": "semantic3d.io.conversion",
         "count_labels": "semantic3d.io.labels",
         "detect_format": "semantic3d.io.formats",
         "iter_ascii_points": "semantic3d.io.ascii",

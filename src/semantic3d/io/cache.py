@@ -29,7 +29,7 @@ import json
 import logging
 import shutil
 import uuid
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import BinaryIO
@@ -58,7 +58,6 @@ __all__ = [
     "CacheWriter",
     "CachedScan",
     "SourceInfo",
-    "build_cache",
     "is_cache",
     "is_cache_current",
     "iter_cache",
@@ -296,44 +295,6 @@ def is_cache_current(
         return False
     labels = None if labels_path is None else SourceInfo.of(labels_path)
     return meta.source == SourceInfo.of(points_path) and meta.labels_source == labels
-
-
-def build_cache(
-    points_path: str | Path,
-    cache_path: str | Path,
-    *,
-    labels_path: str | Path | None = None,
-    chunk_size: int = DEFAULT_CHUNK_SIZE,
-    rebuild: bool = False,
-    progress: Callable[[int, int], None] | None = None,
-) -> CachedScan:
-    """Convert a point file (any format :func:`semantic3d.io.formats.iter_points` reads) once.
-
-    When ``cache_path`` already holds a cache of the same sources (name, size, mtime) it
-    is opened as is, unless ``rebuild``. ``progress(done_points, total_points)`` is called
-    after each chunk; ``total_points`` is exact for LAS/PLY/cache sources and an estimate
-    for ASCII (corrected at the end).
-    """
-    from semantic3d.io.formats import estimate_point_count, iter_points
-
-    points_path = Path(points_path)
-    if not rebuild and is_cache_current(cache_path, points_path, labels_path=labels_path):
-        logger.info("%s: cache is current, reusing it", cache_path)
-        return open_cache(cache_path)
-    source = SourceInfo.of(points_path)
-    labels_source = None if labels_path is None else SourceInfo.of(labels_path)
-    total = estimate_point_count(points_path).n_points if progress is not None else 0
-    chunks = iter_points(points_path, chunk_size=chunk_size, labels_path=labels_path)
-    with open_cache_writer(cache_path, source=source, labels_source=labels_source) as writer:
-        for chunk in chunks:
-            writer.write(chunk)
-            if progress is not None:
-                total = max(total, writer.n_points)
-                progress(writer.n_points, total)
-    if progress is not None:
-        progress(writer.n_points, writer.n_points)
-    logger.info("%s: cached %d points from %s", cache_path, writer.n_points, points_path)
-    return open_cache(cache_path)
 
 
 def _open_column(path: Path, n_points: int, dtype: np.dtype, tail: tuple[int, ...]) -> np.ndarray:

@@ -119,27 +119,15 @@ def iter_points(
     chunk_size = validate_chunk_size(chunk_size)
     path = Path(path)
     kind = detect_format(path)
-    if kind is PointFormat.ASCII:
+    if kind is PointFormat.ASCII:  # labels live in a file of their own
         labels = labels_path
         if labels is None and sibling_labels:
             labels = sibling_labels_path(path)
         return iter_ascii_points(path, chunk_size=chunk_size, labels_path=labels)
-    chunks = _iter_embedded(path, kind, chunk_size)
+    chunks = _HANDLERS[kind].read(path, chunk_size)
     if labels_path is None:
         return chunks
     return attach_labels(path, chunks, Path(labels_path), chunk_size=chunk_size)
-
-
-def _iter_embedded(path: Path, kind: PointFormat, chunk_size: int) -> Iterator[PointCloud]:
-    if kind is PointFormat.CACHE:
-        return iter_cache(path, chunk_size=chunk_size)
-    if kind is PointFormat.PLY:
-        from semantic3d.io.ply import iter_ply
-
-        return iter_ply(path, chunk_size=chunk_size)
-    from semantic3d.io.las import iter_las
-
-    return iter_las(path, chunk_size=chunk_size)
 
 
 def read_points(path: str | Path, *, labels_path: str | Path | None = None) -> PointCloud:
@@ -190,15 +178,7 @@ def write_points(
                 stale,
             )
         return n_points
-    if kind is PointFormat.CACHE:
-        return write_cache(path, chunks)
-    if kind is PointFormat.PLY:
-        from semantic3d.io.ply import write_ply
-
-        return write_ply(path, chunks)
-    from semantic3d.io.las import write_las
-
-    return write_las(path, chunks, crs=crs)
+    return _HANDLERS[kind].write(path, chunks, crs)
 
 
 @dataclass(frozen=True, slots=True)
@@ -216,17 +196,10 @@ def estimate_point_count(path: str | Path) -> PointCountEstimate:
     the lines in the first MiB (exact when the file is smaller).
     """
     path = Path(path)
-    kind = detect_format(path)
-    if kind is PointFormat.CACHE:
-        return PointCountEstimate(open_cache(path).n_points, True)
-    if kind is PointFormat.PLY:
-        from semantic3d.io.ply import read_ply_header
+    return _HANDLERS[detect_format(path)].count(path)
 
-        return PointCountEstimate(read_ply_header(path).n_vertices, True)
-    if kind in (PointFormat.LAS, PointFormat.LAZ):
-        from semantic3d.io.las import read_las_header
 
-        return PointCountEstimate(int(read_las_header(path).point_count), True)
+def _count_ascii(path: Path) -> PointCountEstimate:
     size = path.stat().st_size
     with path.open("rb") as stream:
         sample = stream.read(_SAMPLE_BYTES)
@@ -239,32 +212,7 @@ def estimate_point_count(path: str | Path) -> PointCountEstimate:
 def describe_columns(path: str | Path) -> tuple[str, ...]:
     """The columns ``path`` stores, as ``name type`` strings in file order."""
     path = Path(path)
-    kind = detect_format(path)
-    if kind is PointFormat.ASCII:
-        columns = tuple(f"{name} text" for name in ASCII_COLUMNS)
-        labels = sibling_labels_path(path)
-        return columns + ((f"label text (in {labels.name})",) if labels else ())
-    if kind is PointFormat.CACHE:
-        scan = open_cache(path)
-        arrays: dict[str, np.ndarray] = {
-            "xyz": scan.xyz,
-            "intensity": scan.intensity,
-            "rgb": scan.rgb,
-        }
-        if scan.labels is not None:
-            arrays["labels"] = scan.labels
-        return tuple(f"{name} {a.dtype.name} {tuple(a.shape)}" for name, a in arrays.items())
-    if kind is PointFormat.PLY:
-        from semantic3d.io.ply import read_ply_header
-
-        return read_ply_header(path).vertex_properties
-    from semantic3d.io.las import read_las_header
-
-    point_format = read_las_header(path).point_format
-    return tuple(
-        f"{d.name} {d.dtype if d.dtype is not None else f'{d.num_bits}-bit'}"
-        for d in point_format.dimensions
-    )
+    return _HANDLERS[detect_format(path)].columns(path)
 
 
 @dataclass(frozen=True, slots=True)
@@ -327,3 +275,117 @@ def summarize_points(
         intensity_range=None if empty else (intensity_low, intensity_high),
         label_counts=label_counts,
     )
+
+
+# -- one handler per format ----------------------------------------------------------------
+# Every format-specific step is a function of the table below; the public functions above
+# look a format up once. LAS/LAZ and PLY modules are imported inside their functions, so
+# ASCII and caches work without the extras.
+
+
+@dataclass(frozen=True, slots=True)
+class _FormatHandler:
+    """How one format is read, written, counted and described."""
+
+    read: Callable[[Path, int], Iterator[PointCloud]]
+    """Chunks with the labels the file itself carries (ASCII: none, see iter_points)."""
+    write: Callable[[Path, Iterable[PointCloud], object], int]
+    """Write chunks (the last argument is the CRS, for the formats that store one)."""
+    count: Callable[[Path], PointCountEstimate]
+    columns: Callable[[Path], tuple[str, ...]]
+
+
+def _read_ascii(path: Path, chunk_size: int) -> Iterator[PointCloud]:
+    return iter_ascii_points(path, chunk_size=chunk_size)
+
+
+def _write_ascii(path: Path, chunks: Iterable[PointCloud], crs: object) -> int:
+    return write_ascii_points(path, chunks)
+
+
+def _columns_ascii(path: Path) -> tuple[str, ...]:
+    columns = tuple(f"{name} text" for name in ASCII_COLUMNS)
+    labels = sibling_labels_path(path)
+    return columns + ((f"label text (in {labels.name})",) if labels else ())
+
+
+def _read_cache(path: Path, chunk_size: int) -> Iterator[PointCloud]:
+    return iter_cache(path, chunk_size=chunk_size)
+
+
+def _write_cache(path: Path, chunks: Iterable[PointCloud], crs: object) -> int:
+    return write_cache(path, chunks)
+
+
+def _count_cache(path: Path) -> PointCountEstimate:
+    return PointCountEstimate(open_cache(path).n_points, True)
+
+
+def _columns_cache(path: Path) -> tuple[str, ...]:
+    scan = open_cache(path)
+    arrays: dict[str, np.ndarray] = {"xyz": scan.xyz, "intensity": scan.intensity, "rgb": scan.rgb}
+    if scan.labels is not None:
+        arrays["labels"] = scan.labels
+    return tuple(f"{name} {a.dtype.name} {tuple(a.shape)}" for name, a in arrays.items())
+
+
+def _read_ply(path: Path, chunk_size: int) -> Iterator[PointCloud]:
+    from semantic3d.io.ply import iter_ply
+
+    return iter_ply(path, chunk_size=chunk_size)
+
+
+def _write_ply(path: Path, chunks: Iterable[PointCloud], crs: object) -> int:
+    from semantic3d.io.ply import write_ply
+
+    return write_ply(path, chunks)
+
+
+def _count_ply(path: Path) -> PointCountEstimate:
+    from semantic3d.io.ply import read_ply_header
+
+    return PointCountEstimate(read_ply_header(path).n_vertices, True)
+
+
+def _columns_ply(path: Path) -> tuple[str, ...]:
+    from semantic3d.io.ply import read_ply_header
+
+    return read_ply_header(path).vertex_properties
+
+
+def _read_las(path: Path, chunk_size: int) -> Iterator[PointCloud]:
+    from semantic3d.io.las import iter_las
+
+    return iter_las(path, chunk_size=chunk_size)
+
+
+def _write_las(path: Path, chunks: Iterable[PointCloud], crs: object) -> int:
+    from semantic3d.io.las import write_las
+
+    return write_las(path, chunks, crs=crs)
+
+
+def _count_las(path: Path) -> PointCountEstimate:
+    from semantic3d.io.las import read_las_header
+
+    return PointCountEstimate(int(read_las_header(path).point_count), True)
+
+
+def _columns_las(path: Path) -> tuple[str, ...]:
+    from semantic3d.io.las import read_las_header
+
+    point_format = read_las_header(path).point_format
+    return tuple(
+        f"{d.name} {d.dtype if d.dtype is not None else f'{d.num_bits}-bit'}"
+        for d in point_format.dimensions
+    )
+
+
+_LAS = _FormatHandler(_read_las, _write_las, _count_las, _columns_las)
+_HANDLERS: dict[PointFormat, _FormatHandler] = {
+    PointFormat.ASCII: _FormatHandler(_read_ascii, _write_ascii, _count_ascii, _columns_ascii),
+    PointFormat.LAS: _LAS,
+    PointFormat.LAZ: _LAS,
+    PointFormat.PLY: _FormatHandler(_read_ply, _write_ply, _count_ply, _columns_ply),
+    PointFormat.CACHE: _FormatHandler(_read_cache, _write_cache, _count_cache, _columns_cache),
+}
