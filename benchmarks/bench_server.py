@@ -116,10 +116,10 @@ def prepare_server(data_dir: Path, gt: Path) -> str:
     """Install the challenge, an account and 100 published leaderboard entries; a token."""
     import json
 
-    from semantic3d.server.accounts import create_token, create_user
-    from semantic3d.server.challenges import install_challenge
     from semantic3d.server.db import create_db_engine, create_session_factory, run_migrations
     from semantic3d.server.models import JOB_DONE, Job, Submission
+    from semantic3d.server.services.accounts import create_token, create_user
+    from semantic3d.server.services.challenges import install_challenge
     from semantic3d.server.settings import Settings
 
     settings = Settings(data_dir=data_dir)
@@ -232,13 +232,13 @@ def bench_evaluation(server_url: str, token: str, data_dir: Path, preds: Path, l
         submission = client.finalize(upload_id, method=MethodInfo("bench"))
         finalize_s = time.perf_counter() - start
         worker = WorkerProcess(data_dir, log, SEMANTIC3D_WORKER_POLL_S="0.1")
-        final = client.wait(submission["id"], poll_s=0.2, timeout_s=600)
+        final = client.wait(submission.id, poll_s=0.2, timeout_s=600)
         rss = peak_rss_mb(worker.process.pid)
         worker.stop()
-    assert final["status"] == "done", final
+    assert final.status == "done", final
     with closing(sqlite3.connect(data_dir / "semantic3d.sqlite3")) as db:
         started, finished = db.execute(
-            "SELECT started_at, finished_at FROM jobs WHERE submission_id = ?", (submission["id"],)
+            "SELECT started_at, finished_at FROM jobs WHERE submission_id = ?", (submission.id,)
         ).fetchone()
     from datetime import datetime
 
@@ -246,11 +246,11 @@ def bench_evaluation(server_url: str, token: str, data_dir: Path, preds: Path, l
         datetime.fromisoformat(finished) - datetime.fromisoformat(started)
     ).total_seconds()
     return {
-        "labels": final["scores"]["n_points"],
+        "labels": final.scores.n_points if final.scores else 0,
         "finalize_s": finalize_s,
         "evaluate_s": evaluate_s,
         "worker_rss": rss,
-        "mean_iou": final["scores"]["mean_iou"],
+        "mean_iou": final.scores.mean_iou if final.scores else None,
     }
 
 

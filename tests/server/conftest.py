@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import io
+import json
 import re
 import warnings
 import zipfile
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
+from datetime import datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -18,9 +20,9 @@ pytest.importorskip("fastapi")
 
 
 from semantic3d.io.labels import write_labels
-from semantic3d.server.accounts import create_token, create_user
 from semantic3d.server.app import create_app
-from semantic3d.server.challenges import install_challenge
+from semantic3d.server.services.accounts import create_token, create_user
+from semantic3d.server.services.challenges import install_challenge
 from semantic3d.server.settings import Settings
 from semantic3d.server.web import ServerState
 from semantic3d.server.worker import Worker
@@ -212,3 +214,59 @@ def web_login(client: TestClient, username: str, password: str) -> Any:
         data={"username": username, "password": password, "csrf_token": form_csrf(page.text)},
         follow_redirects=False,
     )
+
+
+def check_score_migration(engine: Any) -> None:
+    """Migration 0004 on ``engine``'s empty database: 0003 -> head drops the ``n_points``
+    copy and keeps the scores; head -> 0003 restores it from ``result_json``."""
+    from alembic import command
+    from alembic.config import Config
+    from sqlalchemy import inspect, text
+
+    from semantic3d.server.db import MIGRATIONS_DIR, run_migrations
+
+    config = Config()
+    config.set_main_option("script_location", str(MIGRATIONS_DIR))
+
+    def migrate(step: Any, revision: str) -> None:
+        with engine.begin() as connection:
+            config.attributes["connection"] = connection
+            step(config, revision)
+
+    migrate(command.upgrade, "0003")
+    with engine.begin() as connection:
+        connection.execute(
+            text(
+                "INSERT INTO users (username, password_hash, is_admin, created_at, quota_epoch, "
+                "session_epoch) VALUES ('old', 'x', :no, :at, 0, 0)"
+            ),
+            {"no": False, "at": datetime(2026, 1, 1)},
+        )
+        connection.execute(
+            text(
+                "INSERT INTO submissions (user_id, challenge_id, created_at, in_flight, "
+                "method_name, description, paper_url, code_url, filename, stored_name, "
+                "size_bytes, sha256, published, mean_iou, overall_accuracy, iou_json, "
+                "n_points, result_json) SELECT u.id, c.id, :at, :no, 'm', '', '', '', "
+                "'p.zip', 's.zip', 1, 'x', :yes, 0.5, 0.75, '[0.5]', 1234, :result "
+                "FROM users u, challenges c WHERE u.username = 'old' AND c.name = 'reduced-8'"
+            ),
+            {
+                "at": datetime(2026, 1, 2),
+                "no": False,
+                "yes": True,
+                "result": json.dumps({"n_points": 1234}),
+            },
+        )
+    run_migrations(engine)
+    columns = {column["name"] for column in inspect(engine).get_columns("submissions")}
+    assert "n_points" not in columns and {"mean_iou", "iou_json", "result_json"} <= columns
+    with engine.connect() as connection:
+        row = connection.execute(
+            text("SELECT mean_iou, overall_accuracy, iou_json, result_json FROM submissions")
+        ).one()
+    assert tuple(row) == (0.5, 0.75, "[0.5]", json.dumps({"n_points": 1234}))
+    migrate(command.downgrade, "0003")
+    with engine.connect() as connection:
+        assert connection.execute(text("SELECT n_points FROM submissions")).scalar() == 1234
+    run_migrations(engine)

@@ -127,8 +127,8 @@ def test_register_submit_and_see_the_leaderboard(
 
 
 def _show_confusion_matrices(data_dir: Path, challenge: str) -> None:
-    from semantic3d.server.challenges import set_show_confusion
     from semantic3d.server.db import create_db_engine, create_session_factory
+    from semantic3d.server.services.challenges import set_show_confusion
     from semantic3d.server.settings import Settings
 
     engine = create_db_engine(Settings(data_dir=data_dir))

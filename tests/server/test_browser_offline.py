@@ -37,9 +37,9 @@ def _offline_page(browser, server_url: str, blocked: list[str]):  # noqa: F811
 
 
 def _seed(data_dir: Path, tmp_path: Path, ground_truth_dir: Path, server_url: str) -> None:
-    from semantic3d.server.accounts import create_token, create_user
     from semantic3d.server.client import BenchmarkClient
     from semantic3d.server.db import create_db_engine, create_session_factory
+    from semantic3d.server.services.accounts import create_token, create_user
     from semantic3d.server.settings import Settings
 
     engine = create_db_engine(Settings(data_dir=data_dir))
@@ -58,8 +58,8 @@ def _seed(data_dir: Path, tmp_path: Path, ground_truth_dir: Path, server_url: st
                     challenge="toy",
                     method=MethodInfo(f"Method {name}", runtime_s=60.0 * (index + 1)),
                 )
-                assert client.wait(int(queued["id"]), poll_s=0.2, timeout_s=120)["status"] == "done"
-                client.publish(int(queued["id"]))
+                assert client.wait(queued.id, poll_s=0.2, timeout_s=120).status == "done"
+                client.publish(queued.id)
     finally:
         engine.dispose()
 

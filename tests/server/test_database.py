@@ -22,6 +22,8 @@ from semantic3d.server.db import (
 from semantic3d.server.models import Base, User
 from semantic3d.server.settings import Settings
 
+from .conftest import check_score_migration
+
 
 @pytest.fixture
 def settings(tmp_path: Path) -> Settings:
@@ -34,7 +36,7 @@ def test_migrations_match_the_models(settings: Settings) -> None:
     with engine.connect() as connection:
         assert compare_metadata(MigrationContext.configure(connection), Base.metadata) == []
         version = connection.execute(text("SELECT version_num FROM alembic_version")).scalar()
-    assert version == "0003"
+    assert version == "0004"
     assert set(inspect(engine).get_table_names()) >= {"users", "submissions", "jobs"}
 
 
@@ -42,8 +44,8 @@ def test_upgrading_a_database_with_accounts_keeps_them_usable(settings: Settings
     from alembic import command
     from alembic.config import Config
 
-    from semantic3d.server.accounts import authenticate, create_user
     from semantic3d.server.db import MIGRATIONS_DIR
+    from semantic3d.server.services.accounts import authenticate, create_user
 
     engine = create_db_engine(settings)
     config = Config()
@@ -65,6 +67,10 @@ def test_upgrading_a_database_with_accounts_keeps_them_usable(settings: Settings
     create_user(factory, "alice", "correct horse battery")
     user = authenticate(factory, settings, "alice", "correct horse battery", address="a")
     assert user.session_epoch == 0
+
+
+def test_the_score_migration_goes_both_ways(settings: Settings) -> None:
+    check_score_migration(create_db_engine(settings))
 
 
 def test_migrations_are_idempotent_and_safe_to_run_concurrently(settings: Settings) -> None:

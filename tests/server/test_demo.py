@@ -8,7 +8,7 @@ from semantic3d.evaluation import MethodInfo, custom_challenge, evaluate_submiss
 from semantic3d.io.labels import write_labels
 from semantic3d.server.db import create_db_engine, create_session_factory, run_migrations
 from semantic3d.server.demo import prepare_demo
-from semantic3d.server.leaderboard import LeaderboardCache
+from semantic3d.server.services.leaderboard import LeaderboardCache
 
 from .conftest import ground_truth_arrays, make_settings, noisy_predictions
 

@@ -18,10 +18,10 @@ from typing import Any
 import pytest
 from sqlalchemy import update
 
-from semantic3d.server import uploads
 from semantic3d.server.errors import InsufficientStorageError
 from semantic3d.server.models import UploadSession, utc_now
-from semantic3d.server.uploads import expire_uploads
+from semantic3d.server.services import upload_files, uploads
+from semantic3d.server.services.uploads import expire_uploads
 from semantic3d.server.worker import Worker
 
 from .conftest import (
@@ -49,7 +49,7 @@ def fake_free_space(monkeypatch: pytest.MonkeyPatch, free_bytes: list[int]) -> N
         usage = real(path)
         return usage._replace(free=free_bytes[0])
 
-    monkeypatch.setattr(uploads.shutil, "disk_usage", disk_usage)
+    monkeypatch.setattr(upload_files.shutil, "disk_usage", disk_usage)
 
 
 @pytest.fixture
@@ -80,7 +80,7 @@ def test_uploads_are_refused_with_507_before_the_margin_is_touched(
         f"/api/uploads/{upload_id}", params={"offset": 0}, content=data, headers=headers
     )
     assert put.status_code == 507
-    assert uploads.received_bytes(harness.settings, upload_id) == 0
+    assert upload_files.received_bytes(harness.settings, upload_id) == 0
     # Everything else still works (the margin is there for the database) ...
     assert web_login(harness.client, "grace", PASSWORD).status_code == 303
     assert harness.client.get(f"/api/uploads/{upload_id}", headers=headers).status_code == 200
@@ -108,20 +108,20 @@ def test_enospc_while_writing_keeps_nothing_of_the_chunk(
         ).status_code
         == 200
     )
-    real_append = uploads._append
+    real_append = upload_files._append
 
     def full_disk(handle: Any, upload_id: str, position: int, block: bytearray) -> None:
         handle.write(block[:100])  # a partial write, then the disk is full
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
 
-    monkeypatch.setattr(uploads, "_append", full_disk)
+    monkeypatch.setattr(upload_files, "_append", full_disk)
     put = harness.client.put(
         f"/api/uploads/{upload_id}", params={"offset": half}, content=data[half:], headers=headers
     )
     assert put.status_code == 507
     assert "disk filled up while receiving the chunk at offset" in put.json()["error"]
-    assert uploads.received_bytes(harness.settings, upload_id) == half
-    monkeypatch.setattr(uploads, "_append", real_append)
+    assert upload_files.received_bytes(harness.settings, upload_id) == half
+    monkeypatch.setattr(upload_files, "_append", real_append)
     put = harness.client.put(
         f"/api/uploads/{upload_id}", params={"offset": half}, content=data[half:], headers=headers
     )
@@ -134,7 +134,7 @@ def test_deleting_frees_the_file_even_when_the_database_cannot_write(
 ) -> None:
     token = harness.user_token("grace")
     upload_id = harness.upload(token, good_zip())
-    part = uploads.part_path(harness.settings, upload_id)
+    part = upload_files.part_path(harness.settings, upload_id)
     with harness.state.factory() as session:
         session.execute(update(UploadSession).values(expires_at=utc_now() - timedelta(seconds=1)))
         session.commit()
@@ -228,7 +228,7 @@ def test_a_really_full_disk_answers_507_and_recovers_by_itself(
         # Deleting works on a full disk: the file goes first, which makes room for the row.
         deleted = harness.client.delete(f"/api/uploads/{upload_id}", headers=headers)
         assert deleted.status_code == 204, deleted.text
-        assert not uploads.part_path(settings, upload_id).exists()
+        assert not upload_files.part_path(settings, upload_id).exists()
         assert web_login(harness.client, "grace", PASSWORD).status_code == 303
 
         # The disk fills up again, and is freed: everything works without a restart.

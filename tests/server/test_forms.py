@@ -14,8 +14,8 @@ from fastapi.routing import APIRoute
 from sqlalchemy import select
 
 from semantic3d.server import routers
-from semantic3d.server.models import ApiToken, Challenge, Job, Submission, User
-from semantic3d.server.uploads import received_bytes
+from semantic3d.server.models import ApiToken, ChallengeRecord, Job, Submission, User
+from semantic3d.server.services.upload_files import received_bytes
 
 from .conftest import (
     PASSWORD,
@@ -66,7 +66,9 @@ def _snapshot(harness: Harness) -> tuple[object, ...]:
         tokens = tuple(session.execute(select(ApiToken.id, ApiToken.revoked_at)).all())
         submissions = tuple(session.execute(select(Submission.id, Submission.published)).all())
         jobs = tuple(session.execute(select(Job.id, Job.status, Job.attempts)).all())
-        challenges = tuple(session.execute(select(Challenge.name, Challenge.is_open)).all())
+        challenges = tuple(
+            session.execute(select(ChallengeRecord.name, ChallengeRecord.is_open)).all()
+        )
         users = tuple(session.execute(select(User.id, User.is_admin)).all())
     return tokens, submissions, jobs, challenges, users
 

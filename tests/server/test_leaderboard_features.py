@@ -12,8 +12,8 @@ from pathlib import Path
 import pytest
 
 from semantic3d.core.classes import CLASSES
-from semantic3d.server.challenges import CONFUSION_MIN_SCANS, set_show_confusion
-from semantic3d.server.leaderboard import CSV_COLUMNS
+from semantic3d.server.services.challenges import CONFUSION_MIN_SCANS, set_show_confusion
+from semantic3d.server.services.leaderboard import CSV_COLUMNS
 from semantic3d.server.web import STATIC_DIR, format_bytes, format_duration
 
 from .conftest import (

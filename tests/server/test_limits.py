@@ -23,11 +23,12 @@ from pathlib import Path
 import pytest
 from sqlalchemy import event
 
-from semantic3d.server import accounts, uploads
-from semantic3d.server.accounts import hashing_slot, register_user
 from semantic3d.server.errors import RequestTimeoutError, ServiceUnavailableError
+from semantic3d.server.services import accounts, upload_files
+from semantic3d.server.services.accounts import hashing_slot, register_user
+from semantic3d.server.services.upload_files import locked_part, write_chunk
+from semantic3d.server.services.uploads import get_upload
 from semantic3d.server.throttle import RateLimiter
-from semantic3d.server.uploads import get_upload, locked_part, write_chunk
 
 from .conftest import (
     PASSWORD,
@@ -310,7 +311,7 @@ def test_a_stalled_put_is_cut_off_and_releases_the_lock(harness: Harness) -> Non
     with pytest.raises(RequestTimeoutError, match=r"no data for 0\.2 s; the bytes received"):
         asyncio.run(write_chunk(settings, upload, offset=0, content_length=None, chunks=stalls()))
     assert time.perf_counter() - started < 2
-    assert uploads.received_bytes(settings, upload.id) == 10  # kept: resume from there
+    assert upload_files.received_bytes(settings, upload.id) == 10  # kept: resume from there
     with locked_part(settings, upload.id):  # the lock is free again
         pass
 
@@ -318,7 +319,7 @@ def test_a_stalled_put_is_cut_off_and_releases_the_lock(harness: Harness) -> Non
 def test_deleting_an_upload_during_its_finalize_is_a_clean_409(
     harness: Harness, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    from semantic3d.server import submissions
+    from semantic3d.server.services import submissions
 
     token = harness.user_token("racer")
     headers = {"Authorization": f"Bearer {token}"}

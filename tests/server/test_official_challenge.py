@@ -11,7 +11,7 @@ import pytest
 
 from semantic3d.evaluation import load_challenge
 from semantic3d.io.labels import format_labels_bytes, write_labels
-from semantic3d.server.challenges import install_challenge
+from semantic3d.server.services.challenges import install_challenge
 
 from .conftest import build_harness, make_settings
 

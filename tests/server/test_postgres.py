@@ -19,6 +19,7 @@ import pytest
 from .conftest import (
     Harness,
     build_harness,
+    check_score_migration,
     ground_truth_arrays,
     make_settings,
     noisy_predictions,
@@ -108,6 +109,18 @@ def test_migrations_match_the_models_on_postgresql(pg_harness: Harness) -> None:
         assert compare_metadata(MigrationContext.configure(connection), Base.metadata) == []
 
 
+def test_the_score_migration_goes_both_ways_on_postgresql(
+    tmp_path: Path, postgres_url: str
+) -> None:
+    from semantic3d.server.db import create_db_engine
+
+    engine = create_db_engine(make_settings(tmp_path / "data", database_url=postgres_url))
+    try:
+        check_score_migration(engine)
+    finally:
+        engine.dispose()
+
+
 def test_submission_flow_on_postgresql(pg_harness: Harness) -> None:
     token = pg_harness.user_token("alice")
     headers = {"Authorization": f"Bearer {token}"}
@@ -162,7 +175,7 @@ def test_quota_is_race_free_on_postgresql(
 
 
 def test_concurrent_workers_lease_each_job_once_on_postgresql(pg_harness: Harness) -> None:
-    from semantic3d.server import queue
+    from semantic3d.server.services import queue
 
     for index in range(6):
         token = pg_harness.user_token(f"user{index}")
@@ -194,7 +207,7 @@ def test_concurrent_workers_lease_each_job_once_on_postgresql(pg_harness: Harnes
 
 def test_open_upload_limit_holds_under_concurrency_on_postgresql(pg_harness: Harness) -> None:
     from semantic3d.server.errors import ConflictError
-    from semantic3d.server.uploads import create_upload
+    from semantic3d.server.services.uploads import create_upload
 
     pg_harness.user_token("alice")
     limit = pg_harness.settings.max_open_uploads
@@ -225,8 +238,8 @@ def test_open_upload_limit_holds_under_concurrency_on_postgresql(pg_harness: Har
 
 
 def test_login_throttling_on_postgresql(pg_harness: Harness) -> None:
-    from semantic3d.server.accounts import authenticate
     from semantic3d.server.errors import AuthenticationError, ThrottledError
+    from semantic3d.server.services.accounts import authenticate
 
     pg_harness.user_token("alice")
     outcomes: list[str] = []

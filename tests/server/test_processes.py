@@ -17,9 +17,9 @@ import pytest
 
 from semantic3d.evaluation import MethodInfo, evaluate_submission
 from semantic3d.io.labels import format_labels_bytes, write_labels
-from semantic3d.server.challenges import build_challenge, get_challenge
 from semantic3d.server.client import BenchmarkClient
 from semantic3d.server.db import create_db_engine, create_session_factory
+from semantic3d.server.services.challenges import build_challenge, get_challenge
 from semantic3d.server.settings import Settings
 
 from .conftest import PASSWORD, form_csrf, ground_truth_arrays, noisy_predictions, submission_zip
@@ -111,19 +111,13 @@ def test_a_restart_loses_nothing(tmp_path: Path, ground_truth_dir: Path) -> None
     assert web.get("/account").status_code == 200
     # Half an upload, then the server dies.
     with BenchmarkClient(server.url, token) as client:
-        created = client._json(
-            client._request(
-                "POST",
-                "/api/uploads",
-                json={
-                    "challenge": "toy",
-                    "size_bytes": len(data),
-                    "filename": "preds.zip",
-                    "sha256": hashlib.sha256(data).hexdigest(),
-                },
-            )
+        created = client.open_upload(
+            challenge="toy",
+            size_bytes=len(data),
+            filename="preds.zip",
+            sha256=hashlib.sha256(data).hexdigest(),
         )
-        client._http.put(f"/api/uploads/{created['id']}", params={"offset": 0}, content=data[:1000])
+        client._http.put(f"/api/uploads/{created.id}", params={"offset": 0}, content=data[:1000])
     server.kill()
 
     server = ServerProcess(data_dir, log, "--no-worker")
@@ -131,16 +125,16 @@ def test_a_restart_loses_nothing(tmp_path: Path, ground_truth_dir: Path) -> None
     with BenchmarkClient(server.url, token) as client:
         seen: list[int] = []
         upload_id = client.upload(preds, challenge="toy", progress=lambda d, t: seen.append(d))
-        assert upload_id == created["id"] and seen[0] == 1000  # resumed, not restarted
+        assert upload_id == created.id and seen[0] == 1000  # resumed, not restarted
         submission = client.finalize(upload_id, method=MethodInfo("survivor"))
     server.kill()  # dies with the job queued
 
     server = ServerProcess(data_dir, log)  # embedded worker picks the job up
     web.base_url = httpx.URL(server.url)
     with BenchmarkClient(server.url, token) as client:
-        final = client.wait(submission["id"], poll_s=0.2, timeout_s=120)
-        assert final["status"] == "done"
-        client.publish(submission["id"])
+        final = client.wait(submission.id, poll_s=0.2, timeout_s=120)
+        assert final.status == "done"
+        client.publish(submission.id)
         board = client.leaderboard("toy")
     server.stop()
 
@@ -149,7 +143,7 @@ def test_a_restart_loses_nothing(tmp_path: Path, ground_truth_dir: Path) -> None
     try:
         with BenchmarkClient(server.url, token) as client:
             assert client.leaderboard("toy") == board
-            assert client.me()["username"] == "alice"
+            assert client.me().username == "alice"
         assert "Account alice" in web.get("/account").text  # the session cookie still works
     finally:
         server.stop()
@@ -207,7 +201,7 @@ def test_a_worker_killed_mid_job_is_replaced_with_the_identical_result(tmp_path:
     try:
         with BenchmarkClient(server.url, token) as client:
             submission = client.submit(preds, challenge="big", method=MethodInfo("crash test"))
-        submission_id = submission["id"]
+        submission_id = submission.id
         victim = WorkerProcess(data_dir, tmp_path / "worker-1.log", **lease)
         job = _stop_mid_evaluation(victim, data_dir, submission_id)
         victim.kill()  # SIGKILL mid-evaluation

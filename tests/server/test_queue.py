@@ -10,8 +10,9 @@ from pathlib import Path
 
 import pytest
 
-from semantic3d.server import queue
 from semantic3d.server.models import Job, Submission
+from semantic3d.server.services import queue
+from semantic3d.server.services.scores import StoredScores
 
 from .conftest import (
     Harness,
@@ -23,6 +24,16 @@ from .conftest import (
 )
 
 LEASE_S = 0.3
+
+
+def _scores(result: dict[str, int], *, mean_iou: float) -> StoredScores:
+    """Stored fields of a stand-in result (the queue stores what it is given)."""
+    return StoredScores(
+        mean_iou=mean_iou,
+        overall_accuracy=0.5,
+        iou_json=json.dumps([mean_iou] * 8),
+        result_json=json.dumps(result),
+    )
 
 
 @pytest.fixture
@@ -71,11 +82,7 @@ def test_an_expired_lease_is_taken_over_and_the_stale_worker_fenced_out(
         queue.complete(
             factory,
             stale,
-            result={"x": 1},
-            mean_iou=0.5,
-            overall_accuracy=0.5,
-            iou=[0.5] * 8,
-            n_points=1,
+            scores=_scores({"x": 1}, mean_iou=0.5),
             progress_total=1,
         )
         is False
@@ -84,11 +91,7 @@ def test_an_expired_lease_is_taken_over_and_the_stale_worker_fenced_out(
     assert queue.complete(
         factory,
         fresh,
-        result={"x": 2},
-        mean_iou=0.25,
-        overall_accuracy=0.5,
-        iou=[0.25] * 8,
-        n_points=1,
+        scores=_scores({"x": 2}, mean_iou=0.25),
         progress_total=1,
     )
     with factory() as session:

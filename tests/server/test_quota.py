@@ -12,7 +12,7 @@ from sqlalchemy import func, select
 from semantic3d.evaluation import MethodInfo
 from semantic3d.server.errors import ThrottledError
 from semantic3d.server.models import Submission
-from semantic3d.server.submissions import finalize_upload
+from semantic3d.server.services.submissions import finalize_upload
 
 from .conftest import (
     Harness,
@@ -184,7 +184,7 @@ def test_simultaneous_finalizes_cannot_both_pass(
 
 
 def test_an_upload_to_a_challenge_closed_meanwhile_is_not_queued(harness: Harness) -> None:
-    from semantic3d.server.challenges import set_challenge_open
+    from semantic3d.server.services.challenges import set_challenge_open
 
     token = harness.user_token("alice")
     upload_id = harness.upload(token, _data())

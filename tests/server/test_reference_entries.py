@@ -12,18 +12,18 @@ from sqlalchemy import select, text
 from semantic3d.core.classes import CLASSES
 from semantic3d.core.errors import DataFormatError
 from semantic3d.evaluation import load_challenge
-from semantic3d.server import challenges as challenges_module
-from semantic3d.server.challenges import (
+from semantic3d.server.db import create_db_engine, create_session_factory, run_migrations
+from semantic3d.server.errors import InvalidInputError
+from semantic3d.server.models import ChallengeRecord
+from semantic3d.server.references import read_reference_results, reference_results
+from semantic3d.server.services import challenges as challenges_module
+from semantic3d.server.services.challenges import (
     NOT_INSTALLED,
     get_challenge,
     install_challenge,
     set_challenge_open,
 )
-from semantic3d.server.db import create_db_engine, create_session_factory, run_migrations
-from semantic3d.server.errors import InvalidInputError
-from semantic3d.server.leaderboard import LeaderboardEntry, merged_rows
-from semantic3d.server.models import Challenge
-from semantic3d.server.references import read_reference_results, reference_results
+from semantic3d.server.services.leaderboard import LeaderboardEntry, merged_rows
 
 from .conftest import (
     PASSWORD,
@@ -147,7 +147,7 @@ def test_installing_the_ground_truth_completes_and_opens_the_listed_challenge(
         stored = get_challenge(session, "reduced-8")
         assert (stored.id, stored.n_scans, stored.is_open) == (listed_id, 4, True)
         assert stored.ground_truth_installed and stored.protocol_version == "1"
-        assert len(session.scalars(select(Challenge)).all()) == 3
+        assert len(session.scalars(select(ChallengeRecord)).all()) == 3
     listed = harness.client.get("/api/challenges/reduced-8").json()
     assert listed["status"] == "open" and listed["accepts_submissions"]
     page = harness.client.get("/challenges/reduced-8").text
@@ -289,7 +289,7 @@ def test_upgrading_keeps_an_installed_benchmark_challenge_and_lists_the_other(
     run_migrations(engine)
     factory = create_session_factory(engine)
     with factory() as session:
-        rows = {row.name: row for row in session.scalars(select(Challenge))}
+        rows = {row.name: row for row in session.scalars(select(ChallengeRecord))}
     engine.dispose()
     assert set(rows) == {"reduced-8", "semantic-8"}
     assert rows["reduced-8"].ground_truth_installed and rows["reduced-8"].title == "Reduced"
@@ -300,8 +300,8 @@ def test_upgrading_keeps_an_installed_benchmark_challenge_and_lists_the_other(
 def test_a_fresh_server_says_why_nothing_can_be_submitted_yet(tmp_path: Path) -> None:
     from fastapi.testclient import TestClient
 
-    from semantic3d.server.accounts import create_user
     from semantic3d.server.app import create_app
+    from semantic3d.server.services.accounts import create_user
 
     app = create_app(make_settings(tmp_path / "data"))
     create_user(app.state.server.factory, "alice", PASSWORD)

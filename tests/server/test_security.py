@@ -74,8 +74,8 @@ def test_brute_force_login_is_throttled(throttled: Harness) -> None:
 
 
 def _guess(harness: Harness, password: str, address: str) -> str:
-    from semantic3d.server.accounts import authenticate
     from semantic3d.server.errors import AuthenticationError, ThrottledError
+    from semantic3d.server.services.accounts import authenticate
 
     try:
         authenticate(harness.state.factory, harness.settings, "alice", password, address=address)
@@ -129,8 +129,8 @@ def test_a_successful_login_clears_the_failures(throttled: Harness) -> None:
 
 
 def test_concurrent_guesses_get_at_most_the_allowed_checks(throttled: Harness) -> None:
-    from semantic3d.server.accounts import authenticate
     from semantic3d.server.errors import AuthenticationError, ThrottledError
+    from semantic3d.server.services.accounts import authenticate
 
     throttled.user_token("alice")
     outcomes: list[str] = []

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from semantic3d.evaluation import MethodInfo, evaluate_submission
-from semantic3d.server.challenges import build_challenge, get_challenge
+from semantic3d.server.services.challenges import build_challenge, get_challenge
 
 from .conftest import (
     Harness,
@@ -340,7 +340,7 @@ def test_publishing_refreshes_cached_boards_at_once(tmp_path: Path, ground_truth
 
 def test_an_upload_being_finalized_cannot_be_written_or_finalized_again(harness: Harness) -> None:
     from semantic3d.server.errors import ConflictError
-    from semantic3d.server.uploads import locked_part
+    from semantic3d.server.services.upload_files import locked_part
 
     token = harness.user_token("alice")
     data = submission_zip(noisy_predictions(ground_truth_arrays(), 0.9))

@@ -168,8 +168,7 @@ def submit(
                 progress=lambda d, t: bar.update(task, completed=d),
             )
             bar.update(task, description="validating", completed=size)
-            result = client.finalize(upload_id, method=info, source=predictions.name)
-            submission_id = int(result["id"])
+            submission_id = client.finalize(upload_id, method=info, source=predictions.name).id
             ui.console.print(
                 f"submission #{submission_id} queued: {client.server}/submissions/{submission_id}"
             )
@@ -180,19 +179,24 @@ def submit(
                 submission_id,
                 progress=lambda d, t: bar.update(eval_task, completed=d, total=t),
             )
-        if final["status"] == "failed":
-            from semantic3d.server.client import ClientError
+        from semantic3d.server.client import ClientError
 
-            raise ClientError(f"submission #{submission_id} failed: {final.get('error')}")
-        scores = final["scores"]
+        if final.status == "failed" or final.scores is None:
+            raise ClientError(f"submission #{submission_id} failed: {final.error}")
+        scores = final.scores
         ui.console.print(
-            f"mIoU {100 * scores['mean_iou']:.1f} · OA {100 * scores['overall_accuracy']:.1f} "
-            f"({scores['n_points']:,} points)"
+            f"mIoU {_percent(scores.mean_iou)} · OA {_percent(scores.overall_accuracy)} "
+            f"({scores.n_points:,} points)"
         )
         if publish:
             with BenchmarkClient(server, token) as client:
                 client.publish(submission_id)
             ui.console.print(f"published on {server.rstrip('/')}/challenges/{challenge}")
+
+
+def _percent(fraction: float | None) -> str:
+    """A score for people: per cent with one decimal, ``–`` when unknown."""
+    return "–" if fraction is None else f"{100 * fraction:.1f}"
 
 
 admin_app = typer.Typer(
@@ -220,7 +224,7 @@ def add_challenge(
 ) -> None:
     """Install a challenge's hidden ground truth (checked and counted once)."""
     with guarded():
-        from semantic3d.server.challenges import install_challenge
+        from semantic3d.server.services.challenges import install_challenge
 
         settings = _settings(data_dir, database_url)
         row = install_challenge(
@@ -256,7 +260,7 @@ def create_user(
 ) -> None:
     """Create an account (--admin for an administrator; the password is prompted for)."""
     with guarded():
-        from semantic3d.server.accounts import create_user as create
+        from semantic3d.server.services.accounts import create_user as create
 
         settings = _settings(data_dir, database_url)
         user = create(_database(settings), username, password, is_admin=admin)
@@ -272,7 +276,7 @@ def set_admin(
 ) -> None:
     """Give an existing account the admin role (or take it away with --revoke)."""
     with guarded():
-        from semantic3d.server.accounts import set_admin as update
+        from semantic3d.server.services.accounts import set_admin as update
 
         settings = _settings(data_dir, database_url)
         user = update(_database(settings), username, is_admin=not revoke)
@@ -290,7 +294,7 @@ def create_token(
 ) -> None:
     """Create an API token for an account and print it (shown only this once)."""
     with guarded():
-        from semantic3d.server.accounts import create_token_for
+        from semantic3d.server.services.accounts import create_token_for
 
         settings = _settings(data_dir, database_url)
         typer.echo(create_token_for(_database(settings), username, name))
@@ -302,7 +306,7 @@ def list_challenges(
 ) -> None:
     """List installed challenges."""
     with guarded():
-        from semantic3d.server.challenges import list_challenges as rows
+        from semantic3d.server.services.challenges import list_challenges as rows
 
         settings = _settings(data_dir, database_url)
         for row in rows(_database(settings)):

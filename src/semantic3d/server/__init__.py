@@ -3,7 +3,8 @@
 Hidden-label submissions (resumable chunked uploads, validated at once), a crash-safe
 database-backed evaluation queue with leases, and public leaderboards. Needs the
 ``server`` extra (FastAPI, SQLAlchemy, Alembic, …); the submission client in
-:mod:`semantic3d.server.client` needs only ``httpx``.
+:mod:`semantic3d.server.client` needs only ``httpx`` and pydantic (it parses the API's
+models of :mod:`semantic3d.server.schemas`).
 """
 
 from __future__ import annotations

@@ -18,7 +18,6 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from semantic3d import __version__
 from semantic3d.core.errors import Semantic3DError, SubmissionError
-from semantic3d.server.challenges import ChallengeCache
 from semantic3d.server.db import (
     create_db_engine,
     create_session_factory,
@@ -31,10 +30,12 @@ from semantic3d.server.errors import (
     ServiceUnavailableError,
     ThrottledError,
 )
-from semantic3d.server.leaderboard import LeaderboardCache
 from semantic3d.server.routers import accounts, admin, challenges, submissions, uploads
 from semantic3d.server.routers.apidocs import API_DOCS_PATH, OPENAPI_PATH
 from semantic3d.server.routers.apidocs import router as api_docs_router
+from semantic3d.server.schemas import Health
+from semantic3d.server.services.challenges import ChallengeCache
+from semantic3d.server.services.leaderboard import LeaderboardCache
 from semantic3d.server.settings import Settings, load_settings
 from semantic3d.server.web import STATIC_DIR, ServerState, build_templates, render
 from semantic3d.server.worker import Worker, WorkerThread
@@ -206,9 +207,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(api_docs_router)
     _install_error_handlers(app)
 
-    @app.get("/api/health", tags=["health"])
-    def health() -> dict[str, Any]:
-        return {"status": "ok", "version": __version__}
+    @app.get("/api/health", response_model=Health, tags=["health"])
+    def health() -> Health:
+        """Liveness: the server answers, and its version."""
+        return Health(status="ok", version=__version__)
 
     return app
 

@@ -18,12 +18,13 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
 from semantic3d.evaluation import MethodInfo
-from semantic3d.server.accounts import create_token, create_user
-from semantic3d.server.challenges import ChallengeCache, install_challenge
-from semantic3d.server.models import Challenge, Submission, User
+from semantic3d.server.models import ChallengeRecord, Submission, User
+from semantic3d.server.services.accounts import create_token, create_user
+from semantic3d.server.services.challenges import ChallengeCache, install_challenge
+from semantic3d.server.services.submissions import finalize_upload, set_published
+from semantic3d.server.services.upload_files import part_path
+from semantic3d.server.services.uploads import create_upload
 from semantic3d.server.settings import Settings
-from semantic3d.server.submissions import finalize_upload, set_published
-from semantic3d.server.uploads import create_upload, part_path
 from semantic3d.server.worker import Worker
 
 logger = logging.getLogger(__name__)
@@ -87,7 +88,7 @@ def prepare_demo(
     cache = ChallengeCache(settings)
     with factory() as session:
         installed = session.scalars(
-            select(Challenge).where(Challenge.name == DEMO_CHALLENGE)
+            select(ChallengeRecord).where(ChallengeRecord.name == DEMO_CHALLENGE)
         ).first()
         user = session.scalars(select(User).where(User.username == DEMO_USER)).first()
     if installed is None:

@@ -111,8 +111,12 @@ class LoginFailure(Base):
     at: Mapped[datetime] = mapped_column(UTCDateTime, default=utc_now, index=True)
 
 
-class Challenge(Base):
-    """A challenge whose hidden ground truth lives in ``DATA_DIR/ground-truth/<name>``."""
+class ChallengeRecord(Base):
+    """A hosted challenge (its table row); its hidden ground truth lives in
+    ``DATA_DIR/ground-truth/<name>``. The evaluation protocol's challenge (scans, names,
+    point counts) is :class:`semantic3d.evaluation.Challenge`, built from this row by
+    :func:`semantic3d.server.services.challenges.build_challenge`.
+    """
 
     __tablename__ = "challenges"
 
@@ -134,7 +138,7 @@ class Challenge(Base):
         Boolean, default=True, server_default=true()
     )
     # Whether participants see the confusion matrix: None follows the scan-count rule of
-    # :func:`semantic3d.server.challenges.shows_confusion`, True/False overrides it.
+    # :func:`semantic3d.server.services.challenges.shows_confusion`, True/False overrides it.
     show_confusion: Mapped[bool | None] = mapped_column(Boolean, nullable=True)
 
 
@@ -152,7 +156,7 @@ class UploadSession(Base):
     created_at: Mapped[datetime] = mapped_column(UTCDateTime, default=utc_now)
     expires_at: Mapped[datetime] = mapped_column(UTCDateTime, index=True)
 
-    challenge: Mapped[Challenge] = relationship()
+    challenge: Mapped[ChallengeRecord] = relationship()
 
 
 class Submission(Base):
@@ -194,15 +198,16 @@ class Submission(Base):
     published_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
     finished_at: Mapped[datetime | None] = mapped_column(UTCDateTime, nullable=True)
     error: Mapped[str | None] = mapped_column(Text, nullable=True)
-    # Denormalised scores for sorting and listing; the full result is ``result_json``.
+    # The evaluation result is ``result_json``; the leaderboard query filters and orders by
+    # ``mean_iou``/``overall_accuracy`` and lists ``iou_json``, so those repeat parts of it.
+    # All four are written together by ``services.scores.stored_scores``.
     mean_iou: Mapped[float | None] = mapped_column(Float, nullable=True)
     overall_accuracy: Mapped[float | None] = mapped_column(Float, nullable=True)
     iou_json: Mapped[str | None] = mapped_column(Text, nullable=True)
-    n_points: Mapped[int | None] = mapped_column(BigInteger, nullable=True)
     result_json: Mapped[str | None] = mapped_column(Text, nullable=True)
 
     user: Mapped[User] = relationship()
-    challenge: Mapped[Challenge] = relationship()
+    challenge: Mapped[ChallengeRecord] = relationship()
     job: Mapped[Job] = relationship(back_populates="submission", uselist=False)
 
 

@@ -22,11 +22,11 @@ from sqlalchemy import Engine
 from sqlalchemy.orm import Session, sessionmaker
 
 from semantic3d.core.classes import CLASSES
-from semantic3d.server.accounts import end_sessions, get_user, user_for_token
-from semantic3d.server.challenges import ChallengeCache
 from semantic3d.server.errors import AuthenticationError, ForbiddenError
-from semantic3d.server.leaderboard import LeaderboardCache
 from semantic3d.server.models import User
+from semantic3d.server.services.accounts import end_sessions, get_user, user_for_token
+from semantic3d.server.services.challenges import ChallengeCache
+from semantic3d.server.services.leaderboard import LeaderboardCache
 from semantic3d.server.settings import Settings
 from semantic3d.server.worker import WorkerThread
 

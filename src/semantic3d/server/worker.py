@@ -17,12 +17,14 @@ import time
 from sqlalchemy.orm import Session, sessionmaker
 
 from semantic3d.core.errors import Semantic3DError
-from semantic3d.evaluation import MethodInfo, evaluate_submission
-from semantic3d.server import queue
-from semantic3d.server.challenges import ChallengeCache
+from semantic3d.evaluation import evaluate_submission
 from semantic3d.server.models import Submission
+from semantic3d.server.services import queue
+from semantic3d.server.services.challenges import ChallengeCache
+from semantic3d.server.services.methods import method_of
+from semantic3d.server.services.scores import stored_scores
+from semantic3d.server.services.uploads import expire_uploads
 from semantic3d.server.settings import Settings
-from semantic3d.server.uploads import expire_uploads
 
 logger = logging.getLogger(__name__)
 
@@ -129,14 +131,7 @@ class Worker:
             if submission is None:  # deleted meanwhile
                 return
             challenge_row = submission.challenge
-            method = MethodInfo(
-                name=submission.method_name,
-                runtime_s=submission.runtime_s,
-                hardware=submission.hardware,
-                description=submission.description,
-                paper_url=submission.paper_url,
-                code_url=submission.code_url,
-            )
+            method = method_of(submission)
             path = self.settings.submissions_dir / submission.stored_name
             filename = submission.filename
         heartbeat = _Heartbeat(self.factory, self.settings, lease)
@@ -172,18 +167,10 @@ class Worker:
         heartbeat.stop()
         if heartbeat.lost:
             return
-        scores = result.scores
-        iou: list[float | None] = [
-            float(value) if value == value else None for value in scores.iou.tolist()
-        ]
         stored = queue.complete(
             self.factory,
             lease,
-            result=result.to_dict(),
-            mean_iou=float(scores.mean_iou),
-            overall_accuracy=float(scores.overall_accuracy),
-            iou=iou,
-            n_points=int(result.n_points),
+            scores=stored_scores(result),
             progress_total=max(heartbeat.total, 1),
         )
         if not stored:

@@ -7,25 +7,25 @@ from typing import Any
 from fastapi import APIRouter, Form, Request
 from fastapi.responses import RedirectResponse, Response
 
-from semantic3d.server.accounts import (
+from semantic3d.server.deps import CurrentUser, PageUser
+from semantic3d.server.errors import AuthenticationError, ForbiddenError, InvalidInputError
+from semantic3d.server.schemas import Account, error_responses
+from semantic3d.server.services.accounts import (
     authenticate,
     create_token,
     list_tokens,
     register_user,
     revoke_token,
 )
-from semantic3d.server.errors import AuthenticationError, ForbiddenError, InvalidInputError
+from semantic3d.server.services.uploads import cancel_upload, list_uploads
 from semantic3d.server.throttle import RateLimiter, limiter_in
-from semantic3d.server.uploads import cancel_upload, list_uploads
 from semantic3d.server.web import (
     ServerState,
-    api_user,
     check_csrf,
     client_address,
     log_in,
     log_out,
     render,
-    session_user,
     state_of,
 )
 
@@ -50,16 +50,16 @@ def _local_path(target: str | None) -> str:
     return "/"
 
 
-@router.get("/api/me", tags=["accounts"])
-def api_me(request: Request) -> dict[str, Any]:
+@router.get(
+    "/api/me", response_model=Account, tags=["accounts"], responses=error_responses(401, 503)
+)
+def api_me(user: CurrentUser) -> Account:
     """Who the token (or session) belongs to."""
-    user = api_user(request)
-    return {"username": user.username, "is_admin": user.is_admin}
+    return Account(username=user.username, is_admin=user.is_admin)
 
 
 @router.get("/register", include_in_schema=False)
-def register_page(request: Request) -> Response:
-    request.state.user = session_user(request)
+def register_page(request: Request, user: PageUser) -> Response:
     return render(request, "register.html", {"open": state_of(request).settings.registration_open})
 
 
@@ -99,8 +99,7 @@ def register(
 
 
 @router.get("/login", include_in_schema=False)
-def login_page(request: Request, next: str = "/") -> Response:
-    request.state.user = session_user(request)
+def login_page(request: Request, user: PageUser, next: str = "/") -> Response:
     return render(request, "login.html", {"next": _local_path(next)})
 
 
@@ -138,8 +137,7 @@ def logout(request: Request, csrf_token: str = Form("")) -> Response:
 
 
 @router.get("/account", include_in_schema=False)
-def account_page(request: Request) -> Response:
-    user = request.state.user = session_user(request)
+def account_page(request: Request, user: PageUser) -> Response:
     if user is None:
         return RedirectResponse("/login?next=/account", status_code=303)
     return render(request, "account.html", _account_context(request, user.id))
@@ -154,8 +152,9 @@ def _account_context(request: Request, user_id: int) -> dict[str, Any]:
 
 
 @router.post("/account/tokens", include_in_schema=False)
-def new_token(request: Request, name: str = Form("cli"), csrf_token: str = Form("")) -> Response:
-    user = request.state.user = session_user(request)
+def new_token(
+    request: Request, user: PageUser, name: str = Form("cli"), csrf_token: str = Form("")
+) -> Response:
     if user is None:
         return RedirectResponse("/login?next=/account", status_code=303)
     check_csrf(request, csrf_token)
@@ -167,8 +166,7 @@ def new_token(request: Request, name: str = Form("cli"), csrf_token: str = Form(
 
 
 @router.post("/account/tokens/{token_id}/revoke", include_in_schema=False)
-def revoke(request: Request, token_id: int, csrf_token: str = Form("")) -> Response:
-    user = request.state.user = session_user(request)
+def revoke(request: Request, user: PageUser, token_id: int, csrf_token: str = Form("")) -> Response:
     if user is None:
         return RedirectResponse("/login?next=/account", status_code=303)
     check_csrf(request, csrf_token)
@@ -177,8 +175,9 @@ def revoke(request: Request, token_id: int, csrf_token: str = Form("")) -> Respo
 
 
 @router.post("/account/uploads/{upload_id}/delete", include_in_schema=False)
-def delete_upload_form(request: Request, upload_id: str, csrf_token: str = Form("")) -> Response:
-    user = request.state.user = session_user(request)
+def delete_upload_form(
+    request: Request, user: PageUser, upload_id: str, csrf_token: str = Form("")
+) -> Response:
     if user is None:
         return RedirectResponse("/login?next=/account", status_code=303)
     check_csrf(request, csrf_token)

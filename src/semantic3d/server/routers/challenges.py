@@ -2,44 +2,58 @@
 
 from __future__ import annotations
 
+from enum import Enum
 from typing import Any
 
 from fastapi import APIRouter, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import HTMLResponse, Response
 
-from semantic3d.server.challenges import (
+from semantic3d.server.deps import DbSession, PageUser, State
+from semantic3d.server.references import reference_results
+from semantic3d.server.schemas import ChallengeInfo, ChallengeList, Leaderboard, error_responses
+from semantic3d.server.services.challenges import (
     CONFUSION_MIN_SCANS,
     NOT_INSTALLED,
     get_challenge,
     list_challenges,
     shows_confusion,
 )
-from semantic3d.server.leaderboard import challenge_dict, merged_rows, reference_entries
-from semantic3d.server.references import reference_results
+from semantic3d.server.services.leaderboard import challenge_info, merged_rows, reference_entries
 from semantic3d.server.web import render, session_user, state_of
 
 router = APIRouter()
 
 
-@router.get("/api/challenges", tags=["challenges"])
-def api_challenges(request: Request) -> dict[str, Any]:
+_TAGS: list[str | Enum] = ["challenges"]
+_ERRORS = error_responses(404, 422, 503)
+
+
+@router.get("/api/challenges", response_model=ChallengeList, tags=_TAGS, responses=_ERRORS)
+def api_challenges(state: State) -> ChallengeList:
     """Every challenge of this server."""
-    rows = list_challenges(state_of(request).factory)
-    return {"challenges": [challenge_dict(row) for row in rows]}
+    return ChallengeList(challenges=[challenge_info(row) for row in list_challenges(state.factory)])
 
 
-@router.get("/api/challenges/{name}", tags=["challenges"])
-def api_challenge(request: Request, name: str) -> dict[str, Any]:
+@router.get("/api/challenges/{name}", response_model=ChallengeInfo, tags=_TAGS, responses=_ERRORS)
+def api_challenge(name: str, db: DbSession) -> ChallengeInfo:
     """One challenge."""
-    with state_of(request).factory() as session:
-        return challenge_dict(get_challenge(session, name))
+    return challenge_info(get_challenge(db, name))
 
 
-@router.get("/api/challenges/{name}/leaderboard", tags=["challenges"])
-async def api_leaderboard(request: Request, name: str) -> Response:
-    """The public leaderboard, ranked by mean IoU (cached for a few seconds)."""
-    cache = state_of(request).leaderboards
+@router.get(
+    "/api/challenges/{name}/leaderboard",
+    response_model=Leaderboard,
+    tags=_TAGS,
+    responses=_ERRORS,
+)
+async def api_leaderboard(name: str, state: State) -> Response:
+    """The public leaderboard, ranked by mean IoU (cached for a few seconds).
+
+    ``entries`` are the ranked participants; ``references`` the published results the
+    board compares with (never ranked). Answered from the cached JSON bytes.
+    """
+    cache = state.leaderboards
     # The hot path answers from memory on the event loop; only a rebuild goes to a thread.
     body = cache.fresh("json", name)
     if body is None:
@@ -47,10 +61,19 @@ async def api_leaderboard(request: Request, name: str) -> Response:
     return Response(body, media_type="application/json")
 
 
-@router.get("/challenges/{name}/leaderboard.csv", tags=["challenges"])
-async def leaderboard_csv(request: Request, name: str) -> Response:
+@router.get(
+    "/challenges/{name}/leaderboard.csv",
+    response_class=Response,
+    tags=_TAGS,
+    responses={
+        200: {"content": {"text/csv": {}}, "description": "the board as CSV"},
+        404: {"content": {"text/html": {}}, "description": "no such challenge (a web page)"},
+        422: {"content": {"text/html": {}}, "description": "malformed request (a web page)"},
+    },
+)
+async def leaderboard_csv(name: str, state: State) -> Response:
     """The public leaderboard as CSV: participants ranked, references sorted in unranked."""
-    cache = state_of(request).leaderboards
+    cache = state.leaderboards
     body = cache.fresh("csv", name)
     if body is None:
         body = await run_in_threadpool(cache.csv_bytes, name)
@@ -62,9 +85,8 @@ async def leaderboard_csv(request: Request, name: str) -> Response:
 
 
 @router.get("/", include_in_schema=False)
-def index_page(request: Request) -> Response:
-    request.state.user = session_user(request)
-    rows = list_challenges(state_of(request).factory)
+def index_page(request: Request, user: PageUser, state: State) -> Response:
+    rows = list_challenges(state.factory)
     return render(request, "index.html", {"challenges": rows, "not_installed": NOT_INSTALLED})
 
 

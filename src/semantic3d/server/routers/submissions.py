@@ -7,91 +7,104 @@ included. Per-scan scores are shown nowhere.
 
 from __future__ import annotations
 
-from typing import Any
+from enum import Enum
 
 from fastapi import APIRouter, Form, Request
 from fastapi.responses import RedirectResponse, Response
-from pydantic import BaseModel
 from sqlalchemy import select
 
-from semantic3d.server.challenges import (
+from semantic3d.server.deps import CurrentUser, DbSession, OptionalUser, PageUser, State
+from semantic3d.server.heatmap import confusion_svg
+from semantic3d.server.models import JOB_QUEUED, JOB_RUNNING, Submission, utc_now
+from semantic3d.server.schemas import (
+    PublishRequest,
+    SubmissionInfo,
+    SubmissionList,
+    error_responses,
+)
+from semantic3d.server.services.challenges import (
     CONFUSION_MIN_SCANS,
     accepts_submissions,
     list_challenges,
     shows_confusion,
     submission_status,
 )
-from semantic3d.server.heatmap import confusion_svg
-from semantic3d.server.models import JOB_QUEUED, JOB_RUNNING, Submission, utc_now
-from semantic3d.server.submissions import (
+from semantic3d.server.services.scores import result_of
+from semantic3d.server.services.submissions import (
     next_submission_at,
-    result_of,
     set_published,
-    submission_dict,
+    submission_info,
     user_submissions,
     visible_submission,
 )
-from semantic3d.server.web import (
-    api_user,
-    check_csrf,
-    optional_user,
-    render,
-    session_user,
-    state_of,
-)
+from semantic3d.server.web import check_csrf, render
 
 router = APIRouter()
 
 
-class PublishRequest(BaseModel):
-    """Show (``true``) or hide (``false``) an evaluated submission on its leaderboard."""
+_TAGS: list[str | Enum] = ["submissions"]
+_ERRORS = error_responses(400, 401, 403, 404, 422, 503, 507)
+# ``response_model_exclude_unset``: owner-only fields are left out (not sent as null) for
+# everyone else.
 
-    published: bool
 
-
-@router.get("/api/submissions", tags=["submissions"])
-def api_my_submissions(request: Request) -> dict[str, Any]:
+@router.get(
+    "/api/submissions",
+    response_model=SubmissionList,
+    response_model_exclude_unset=True,
+    tags=_TAGS,
+    responses=_ERRORS,
+)
+def api_my_submissions(user: CurrentUser, state: State) -> SubmissionList:
     """The caller's submissions, newest first."""
-    user = api_user(request)
-    rows = user_submissions(state_of(request).factory, user.id)
-    return {
-        "submissions": [
-            submission_dict(row, owner=True, confusion=_sees_confusion(row, user.is_admin))
+    rows = user_submissions(state.factory, user.id)
+    return SubmissionList(
+        submissions=[
+            submission_info(row, owner=True, confusion=_sees_confusion(row, user.is_admin))
             for row in rows
         ]
-    }
+    )
 
 
-@router.get("/api/submissions/{submission_id}", tags=["submissions"])
-def api_submission(request: Request, submission_id: int) -> dict[str, Any]:
+@router.get(
+    "/api/submissions/{submission_id}",
+    response_model=SubmissionInfo,
+    response_model_exclude_unset=True,
+    tags=_TAGS,
+    responses=_ERRORS,
+)
+def api_submission(submission_id: int, user: OptionalUser, db: DbSession) -> SubmissionInfo:
     """One submission: status and progress; scores once evaluated (if published or yours)."""
-    user = optional_user(request)
-    with state_of(request).factory() as session:
-        row = visible_submission(
-            session,
-            submission_id,
-            viewer_id=user.id if user else None,
-            viewer_is_admin=bool(user and user.is_admin),
-        )
-        return submission_dict(
-            row,
-            owner=user is not None and user.id == row.user_id,
-            confusion=_sees_confusion(row, user is not None and user.is_admin),
-        )
+    row = visible_submission(
+        db,
+        submission_id,
+        viewer_id=user.id if user else None,
+        viewer_is_admin=bool(user and user.is_admin),
+    )
+    return submission_info(
+        row,
+        owner=user is not None and user.id == row.user_id,
+        confusion=_sees_confusion(row, user is not None and user.is_admin),
+    )
 
 
-@router.post("/api/submissions/{submission_id}/publish", tags=["submissions"])
-def api_publish(request: Request, submission_id: int, body: PublishRequest) -> dict[str, Any]:
+@router.post(
+    "/api/submissions/{submission_id}/publish",
+    response_model=SubmissionInfo,
+    response_model_exclude_unset=True,
+    tags=_TAGS,
+    responses=_ERRORS,
+)
+def api_publish(
+    submission_id: int, body: PublishRequest, user: CurrentUser, state: State, db: DbSession
+) -> SubmissionInfo:
     """Publish or withdraw one of your evaluated submissions."""
-    user = api_user(request)
-    state = state_of(request)
     set_published(
         state.factory, user_id=user.id, submission_id=submission_id, published=body.published
     )
     state.leaderboards.invalidate(None)
-    with state.factory() as session:
-        row = visible_submission(session, submission_id, viewer_id=user.id)
-        return submission_dict(row, owner=True, confusion=_sees_confusion(row, user.is_admin))
+    row = visible_submission(db, submission_id, viewer_id=user.id)
+    return submission_info(row, owner=True, confusion=_sees_confusion(row, user.is_admin))
 
 
 def _sees_confusion(row: Submission, is_admin: bool) -> bool:
@@ -100,11 +113,9 @@ def _sees_confusion(row: Submission, is_admin: bool) -> bool:
 
 
 @router.get("/submit", include_in_schema=False)
-def submit_page(request: Request, challenge: str = "") -> Response:
-    user = request.state.user = session_user(request)
+def submit_page(request: Request, user: PageUser, state: State, challenge: str = "") -> Response:
     if user is None:
         return RedirectResponse("/login?next=/submit", status_code=303)
-    state = state_of(request)
     rows = list_challenges(state.factory)
     challenges = [row for row in rows if accepts_submissions(row)]
     now = utc_now()
@@ -140,59 +151,61 @@ def submit_page(request: Request, challenge: str = "") -> Response:
 
 
 @router.get("/submissions", include_in_schema=False)
-def my_submissions_page(request: Request) -> Response:
-    user = request.state.user = session_user(request)
+def my_submissions_page(request: Request, user: PageUser, state: State) -> Response:
     if user is None:
         return RedirectResponse("/login?next=/submissions", status_code=303)
-    rows = user_submissions(state_of(request).factory, user.id)
+    rows = user_submissions(state.factory, user.id)
     return render(request, "submissions.html", {"submissions": rows})
 
 
 @router.get("/submissions/{submission_id}", include_in_schema=False)
-def submission_page(request: Request, submission_id: int) -> Response:
-    user = request.state.user = session_user(request)
-    with state_of(request).factory() as session:
-        row = visible_submission(
-            session,
-            submission_id,
-            viewer_id=user.id if user else None,
-            viewer_is_admin=bool(user and user.is_admin),
-        )
-        job, challenge = row.job, row.challenge
-        owner = user is not None and user.id == row.user_id
-        result = result_of(row)
-        show_matrix = _sees_confusion(row, bool(user and user.is_admin))
-        heatmap = (
-            confusion_svg(result.confusion, title=f"{row.method_name} on {challenge.name}")
-            if result is not None and show_matrix
-            else None
-        )
-        return render(
-            request,
-            "submission.html",
-            {
-                "submission": row,
-                "job": job,
-                "challenge": challenge,
-                "owner": owner,
-                "heatmap": heatmap,
-                "iou": submission_dict(row, owner=owner, confusion=False)["scores"],
-                "pending": job.status in (JOB_QUEUED, JOB_RUNNING),
-                "confusion_hidden": result is not None and not show_matrix,
-                "confusion_min_scans": CONFUSION_MIN_SCANS,
-            },
-        )
+def submission_page(
+    request: Request, submission_id: int, user: PageUser, db: DbSession
+) -> Response:
+    row = visible_submission(
+        db,
+        submission_id,
+        viewer_id=user.id if user else None,
+        viewer_is_admin=bool(user and user.is_admin),
+    )
+    job, challenge = row.job, row.challenge
+    owner = user is not None and user.id == row.user_id
+    result = result_of(row)
+    show_matrix = _sees_confusion(row, bool(user and user.is_admin))
+    heatmap = (
+        confusion_svg(result.confusion, title=f"{row.method_name} on {challenge.name}")
+        if result is not None and show_matrix
+        else None
+    )
+    return render(
+        request,
+        "submission.html",
+        {
+            "submission": row,
+            "job": job,
+            "challenge": challenge,
+            "owner": owner,
+            "heatmap": heatmap,
+            "iou": submission_info(row, owner=owner, confusion=False).scores,
+            "pending": job.status in (JOB_QUEUED, JOB_RUNNING),
+            "confusion_hidden": result is not None and not show_matrix,
+            "confusion_min_scans": CONFUSION_MIN_SCANS,
+        },
+    )
 
 
 @router.post("/submissions/{submission_id}/publish", include_in_schema=False)
 def publish_form(
-    request: Request, submission_id: int, published: str = Form("1"), csrf_token: str = Form("")
+    request: Request,
+    submission_id: int,
+    user: PageUser,
+    state: State,
+    published: str = Form("1"),
+    csrf_token: str = Form(""),
 ) -> Response:
-    user = session_user(request)
     if user is None:
         return RedirectResponse(f"/login?next=/submissions/{submission_id}", status_code=303)
     check_csrf(request, csrf_token)
-    state = state_of(request)
     set_published(
         state.factory, user_id=user.id, submission_id=submission_id, published=published == "1"
     )

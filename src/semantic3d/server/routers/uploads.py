@@ -9,37 +9,45 @@ uploads answer 429, so a costly bad archive cannot be sent again and again.
 
 from __future__ import annotations
 
-from typing import Any
-
 from fastapi import APIRouter, Query, Request
 from fastapi.concurrency import run_in_threadpool
-from fastapi.responses import JSONResponse, Response
-from pydantic import BaseModel, Field
+from fastapi.responses import Response
 from starlette.requests import ClientDisconnect
 
 from semantic3d.core.errors import SubmissionError
-from semantic3d.evaluation import MethodInfo
+from semantic3d.server.deps import CurrentUser, DbSession, State
 from semantic3d.server.errors import InvalidInputError
 from semantic3d.server.models import Submission
-from semantic3d.server.submissions import (
+from semantic3d.server.schemas import (
+    ChunkReceived,
+    FinalizeRequest,
+    OpenedUpload,
+    SubmissionInfo,
+    UploadInfo,
+    UploadList,
+    UploadRequest,
+    error_responses,
+)
+from semantic3d.server.services.submissions import (
     check_upload_allowed,
     finalize_upload,
-    submission_dict,
+    submission_info,
 )
-from semantic3d.server.throttle import RateLimiter, limiter_in
-from semantic3d.server.uploads import (
+from semantic3d.server.services.upload_files import write_chunk
+from semantic3d.server.services.uploads import (
     cancel_upload,
     create_upload,
     get_upload,
     list_uploads,
-    write_chunk,
 )
-from semantic3d.server.web import ServerState, api_user, state_of
+from semantic3d.server.throttle import RateLimiter, limiter_in
+from semantic3d.server.web import ServerState
 
-router = APIRouter(prefix="/api/uploads", tags=["uploads"])
-
-MAX_RUNTIME_S = 1e7
-"""Largest run time a method card may state (115 days); also refuses ``1e308``."""
+router = APIRouter(
+    prefix="/api/uploads",
+    tags=["uploads"],
+    responses=error_responses(400, 401, 403, 404, 409, 413, 422, 429, 503, 507),
+)
 
 
 def rejection_limiter(state: ServerState) -> RateLimiter:
@@ -57,47 +65,9 @@ def _check_rejections(state: ServerState, user_id: int) -> None:
     rejection_limiter(state).check(str(user_id), "invalid submissions from your account")
 
 
-class UploadRequest(BaseModel):
-    """Open an upload: what is coming and how big it is."""
-
-    challenge: str = Field(max_length=64)
-    size_bytes: int = Field(gt=0)
-    filename: str = Field(default="submission.zip", max_length=1000)
-    sha256: str | None = Field(default=None, description="hex digest; makes create resumable")
-
-
-class MethodCard(BaseModel):
-    """The method description shown on the leaderboard."""
-
-    name: str = Field(min_length=1, max_length=200)
-    description: str = Field(default="", max_length=20_000)
-    paper_url: str = Field(default="", max_length=500)
-    code_url: str = Field(default="", max_length=500)
-    runtime_s: float | None = Field(default=None, ge=0, le=MAX_RUNTIME_S, allow_inf_nan=False)
-    hardware: str | None = Field(default=None, max_length=200)
-
-    def to_method(self) -> MethodInfo:
-        return MethodInfo(
-            name=self.name,
-            runtime_s=self.runtime_s,
-            hardware=self.hardware,
-            description=self.description,
-            paper_url=self.paper_url,
-            code_url=self.code_url,
-        )
-
-
-class FinalizeRequest(BaseModel):
-    """Finish an upload: the method card of the submission."""
-
-    method: MethodCard
-
-
-@router.post("", status_code=201)
-def open_upload(request: Request, body: UploadRequest) -> dict[str, Any]:
+@router.post("", status_code=201, response_model=OpenedUpload)
+def open_upload(body: UploadRequest, user: CurrentUser, state: State) -> OpenedUpload:
     """Open (or, same challenge/size/sha256, resume) an upload session."""
-    user = api_user(request)
-    state = state_of(request)
     _check_rejections(state, user.id)
     check_upload_allowed(state.factory, state.settings, user_id=user.id, challenge=body.challenge)
     upload = create_upload(
@@ -109,36 +79,40 @@ def open_upload(request: Request, body: UploadRequest) -> dict[str, Any]:
         filename=body.filename,
         sha256=body.sha256,
     )
-    return upload.to_dict() | {"max_chunk_bytes": state.settings.max_chunk_bytes}
+    return OpenedUpload(
+        **upload.to_info().model_dump(), max_chunk_bytes=state.settings.max_chunk_bytes
+    )
 
 
-@router.get("")
-def open_uploads(request: Request) -> dict[str, Any]:
+@router.get("", response_model=UploadList)
+def open_uploads(user: CurrentUser, state: State) -> UploadList:
     """Your unfinished uploads (oldest first): resume or delete them."""
-    user = api_user(request)
-    state = state_of(request)
     uploads = list_uploads(state.factory, state.settings, user_id=user.id)
-    return {
-        "uploads": [upload.to_dict() for upload in uploads],
-        "max_open_uploads": state.settings.max_open_uploads,
-    }
+    return UploadList(
+        uploads=[upload.to_info() for upload in uploads],
+        max_open_uploads=state.settings.max_open_uploads,
+    )
 
 
-@router.get("/{upload_id}")
-def upload_status(request: Request, upload_id: str) -> dict[str, Any]:
+@router.get("/{upload_id}", response_model=UploadInfo)
+def upload_status(upload_id: str, user: CurrentUser, state: State) -> UploadInfo:
     """How many bytes arrived: where to resume."""
-    user = api_user(request)
-    state = state_of(request)
-    return get_upload(state.factory, state.settings, upload_id, user_id=user.id).to_dict()
+    return get_upload(state.factory, state.settings, upload_id, user_id=user.id).to_info()
 
 
-@router.put("/{upload_id}")
+@router.put("/{upload_id}", response_model=ChunkReceived, responses=error_responses(408))
 async def put_chunk(
-    request: Request, upload_id: str, offset: int = Query(ge=0, description="first byte")
-) -> Response:
-    """Append the request body at ``offset`` (must equal the bytes received so far)."""
-    user = await run_in_threadpool(api_user, request)
-    state = state_of(request)
+    request: Request,
+    upload_id: str,
+    user: CurrentUser,
+    state: State,
+    offset: int = Query(ge=0, description="first byte"),
+) -> ChunkReceived | Response:
+    """Append the request body at ``offset`` (must equal the bytes received so far).
+
+    408 when the body stalls for the server's read timeout (the bytes received are kept),
+    507 when the server's disk cannot take the chunk (nothing of it is kept).
+    """
     upload = await run_in_threadpool(
         get_upload, state.factory, state.settings, upload_id, user_id=user.id
     )
@@ -157,34 +131,30 @@ async def put_chunk(
         )
     except ClientDisconnect:
         return Response(status_code=499)  # nobody is listening; the bytes that came are kept
-    return JSONResponse(
-        {
-            "id": upload.id,
-            "received_bytes": received,
-            "size_bytes": upload.size_bytes,
-            "complete": received >= upload.size_bytes,
-        }
+    return ChunkReceived(
+        id=upload.id,
+        received_bytes=received,
+        size_bytes=upload.size_bytes,
+        complete=received >= upload.size_bytes,
     )
 
 
 @router.delete("/{upload_id}", status_code=204)
-def abandon_upload(request: Request, upload_id: str) -> Response:
+def abandon_upload(upload_id: str, user: CurrentUser, state: State) -> Response:
     """Abandon an upload and delete its bytes (409 while it is being written or finalized)."""
-    user = api_user(request)
-    state = state_of(request)
     cancel_upload(state.factory, state.settings, upload_id, user_id=user.id)
     return Response(status_code=204)
 
 
-@router.post("/{upload_id}/finalize", status_code=201)
-def finalize(request: Request, upload_id: str, body: FinalizeRequest) -> dict[str, Any]:
+@router.post("/{upload_id}/finalize", status_code=201, response_model=SubmissionInfo)
+def finalize(
+    upload_id: str, body: FinalizeRequest, user: CurrentUser, state: State, db: DbSession
+) -> SubmissionInfo:
     """Validate the complete upload and queue it for evaluation.
 
     422 lists every problem of an invalid submission (nothing is kept); 429 when the
     quota does not allow a submission now (the upload is kept until it expires).
     """
-    user = api_user(request)
-    state = state_of(request)
     _check_rejections(state, user.id)
     try:
         submission = finalize_upload(
@@ -203,5 +173,4 @@ def finalize(request: Request, upload_id: str, body: FinalizeRequest) -> dict[st
             rejection_limiter(state).hit(str(user.id))
         raise
     state.leaderboards.invalidate(None)
-    with state.factory() as session:
-        return submission_dict(session.get_one(Submission, submission.id), owner=True)
+    return submission_info(db.get_one(Submission, submission.id), owner=True)

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import csv
 import io
-import json
 import math
 import threading
 import time
@@ -29,14 +28,22 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
 from semantic3d.core.classes import CLASSES
-from semantic3d.server.challenges import (
+from semantic3d.server.models import ChallengeRecord, Submission, User
+from semantic3d.server.references import ReferenceResult, reference_results
+from semantic3d.server.schemas import (
+    ChallengeInfo,
+    ClassInfo,
+    Leaderboard,
+    LeaderboardRow,
+    ReferenceSource,
+)
+from semantic3d.server.services.challenges import (
     accepts_submissions,
     get_challenge,
     shows_confusion,
     submission_status,
 )
-from semantic3d.server.models import Challenge, Submission, User
-from semantic3d.server.references import ReferenceResult, reference_results
+from semantic3d.server.services.scores import stored_iou
 
 T = TypeVar("T")
 
@@ -83,7 +90,7 @@ def reference_entry(result: ReferenceResult) -> LeaderboardEntry:
     )
 
 
-def reference_entries(challenge: Challenge) -> list[LeaderboardEntry]:
+def reference_entries(challenge: ChallengeRecord) -> list[LeaderboardEntry]:
     """The reference rows of ``challenge`` (the paper's, for semantic-8 and reduced-8)."""
     return [reference_entry(result) for result in reference_results().for_challenge(challenge.kind)]
 
@@ -117,26 +124,26 @@ def _reference_order(entry: LeaderboardEntry) -> tuple[float, float]:
     )
 
 
-def challenge_dict(challenge: Challenge) -> dict[str, object]:
-    """Public JSON view of a challenge (never where its ground truth lives)."""
-    return {
-        "name": challenge.name,
-        "title": challenge.title,
-        "description": challenge.description,
-        "kind": challenge.kind,
-        "protocol_version": challenge.protocol_version,
-        "n_scans": challenge.n_scans,
-        "n_points": challenge.n_points,
-        "open": challenge.is_open,
-        "ground_truth_installed": challenge.ground_truth_installed,
-        "accepts_submissions": accepts_submissions(challenge),
-        "status": submission_status(challenge),
-        "shows_confusion": shows_confusion(challenge),
-        "classes": [{"value": c.value, "name": c.name, "colour": c.hex_colour} for c in CLASSES],
-    }
+def challenge_info(challenge: ChallengeRecord) -> ChallengeInfo:
+    """Public view of a challenge (never where its ground truth lives)."""
+    return ChallengeInfo(
+        name=challenge.name,
+        title=challenge.title,
+        description=challenge.description,
+        kind=challenge.kind,
+        protocol_version=challenge.protocol_version,
+        n_scans=challenge.n_scans,
+        n_points=challenge.n_points,
+        open=challenge.is_open,
+        ground_truth_installed=challenge.ground_truth_installed,
+        accepts_submissions=accepts_submissions(challenge),
+        status=submission_status(challenge),
+        shows_confusion=shows_confusion(challenge),
+        classes=[ClassInfo(value=c.value, name=c.name, colour=c.hex_colour) for c in CLASSES],
+    )
 
 
-def leaderboard_entries(session: Session, challenge: Challenge) -> list[LeaderboardEntry]:
+def leaderboard_entries(session: Session, challenge: ChallengeRecord) -> list[LeaderboardEntry]:
     """The ranked public rows of ``challenge`` (one query, only the columns shown)."""
     rows = session.execute(
         select(
@@ -173,7 +180,7 @@ def leaderboard_entries(session: Session, challenge: Challenge) -> list[Leaderbo
             submitted_by=row.username,
             mean_iou=row.mean_iou,
             overall_accuracy=row.overall_accuracy,
-            iou=tuple(json.loads(row.iou_json or "[]")),
+            iou=stored_iou(row.iou_json),
             runtime_s=row.runtime_s,
             hardware=row.hardware,
             submitted_at=row.created_at,
@@ -184,43 +191,44 @@ def leaderboard_entries(session: Session, challenge: Challenge) -> list[Leaderbo
     ]
 
 
-def _entry_dict(entry: LeaderboardEntry) -> dict[str, object]:
+def leaderboard_row(entry: LeaderboardEntry) -> LeaderboardRow:
+    """The API's view of one row: ``iou`` keyed by label value."""
     values = [str(c.value) for c in CLASSES]
-    return {
-        "rank": entry.rank,
-        "reference": entry.reference,
-        "submission_id": entry.submission_id,
-        "method": entry.method,
-        "submitted_by": entry.submitted_by,
-        "mean_iou": entry.mean_iou,
-        "overall_accuracy": entry.overall_accuracy,
-        "iou": dict(zip(values, entry.iou, strict=False)),
-        "runtime_s": entry.runtime_s,
-        "hardware": entry.hardware,
-        "submitted_at": entry.submitted_at.isoformat() if entry.submitted_at else None,
-        "paper_url": entry.paper_url,
-        "code_url": entry.code_url,
-    }
+    return LeaderboardRow(
+        rank=entry.rank,
+        reference=entry.reference,
+        submission_id=entry.submission_id,
+        method=entry.method,
+        submitted_by=entry.submitted_by,
+        mean_iou=entry.mean_iou,
+        overall_accuracy=entry.overall_accuracy,
+        iou=dict(zip(values, entry.iou, strict=False)),
+        runtime_s=entry.runtime_s,
+        hardware=entry.hardware,
+        submitted_at=entry.submitted_at,
+        paper_url=entry.paper_url,
+        code_url=entry.code_url,
+    )
 
 
-def leaderboard_dict(challenge: Challenge, entries: list[LeaderboardEntry]) -> dict[str, object]:
-    """JSON view of a leaderboard: ranked ``entries`` and, apart, the unranked ``references``.
+def leaderboard(challenge: ChallengeRecord, entries: list[LeaderboardEntry]) -> Leaderboard:
+    """The API's view of a leaderboard: ranked ``entries``, apart the unranked ``references``.
 
     Scores are fractions (0..1); ``iou`` maps label values to IoU (``null``: unknown, or
     class absent); ``runtime_s`` is the run time T the authors report.
     """
     references = reference_entries(challenge)
     source = reference_results().source
-    return {
-        "challenge": challenge_dict(challenge),
-        "entries": [_entry_dict(entry) for entry in entries],
-        "references": [_entry_dict(entry) for entry in references],
-        "reference_source": (
-            {"citation": source.citation, "url": source.url, "label": source.label}
+    return Leaderboard(
+        challenge=challenge_info(challenge),
+        entries=[leaderboard_row(entry) for entry in entries],
+        references=[leaderboard_row(entry) for entry in references],
+        reference_source=(
+            ReferenceSource(citation=source.citation, url=source.url, label=source.label)
             if references
             else None
         ),
-    }
+    )
 
 
 CSV_COLUMNS = (
@@ -254,7 +262,7 @@ def _csv_number(value: float | int | None) -> str:
     return "" if value is None else repr(value)
 
 
-def leaderboard_csv(challenge: Challenge, entries: list[LeaderboardEntry]) -> str:
+def leaderboard_csv(challenge: ChallengeRecord, entries: list[LeaderboardEntry]) -> str:
     """The board as CSV, in the order of the page (references sorted in, without rank)."""
     buffer = io.StringIO()
     writer = csv.writer(buffer, lineterminator="\r\n")
@@ -310,10 +318,10 @@ class LeaderboardCache:
             self._cached[(kind, name)] = (now, value)
         return value
 
-    def board(self, name: str) -> tuple[Challenge, list[LeaderboardEntry]]:
+    def board(self, name: str) -> tuple[ChallengeRecord, list[LeaderboardEntry]]:
         """The challenge called ``name`` and its ranked rows (``NotFoundError`` if none)."""
 
-        def build() -> tuple[Challenge, list[LeaderboardEntry]]:
+        def build() -> tuple[ChallengeRecord, list[LeaderboardEntry]]:
             with self._factory() as session:
                 challenge = get_challenge(session, name)
                 return challenge, leaderboard_entries(session, challenge)
@@ -325,7 +333,7 @@ class LeaderboardCache:
 
         def build() -> bytes:
             challenge, entries = self.board(name)
-            return json.dumps(leaderboard_dict(challenge, entries), separators=(",", ":")).encode()
+            return leaderboard(challenge, entries).model_dump_json().encode()
 
         return self.cached("json", name, build)
 

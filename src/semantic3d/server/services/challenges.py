@@ -25,12 +25,11 @@ from sqlalchemy import select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 
-from semantic3d.evaluation import Challenge as EvaluationChallenge
-from semantic3d.evaluation import custom_challenge, load_challenge
+from semantic3d.evaluation import Challenge, custom_challenge, load_challenge
 from semantic3d.evaluation.submission import count_ground_truth_lines
 from semantic3d.server.db import write_transaction
 from semantic3d.server.errors import InvalidInputError, NotFoundError
-from semantic3d.server.models import Challenge
+from semantic3d.server.models import ChallengeRecord
 from semantic3d.server.settings import Settings
 
 logger = logging.getLogger(__name__)
@@ -49,12 +48,12 @@ submission isolates every scan, and the submission cooldown slows the rest.
 NOT_INSTALLED = "not open yet: ground truth not installed"
 
 
-def accepts_submissions(row: Challenge) -> bool:
+def accepts_submissions(row: ChallengeRecord) -> bool:
     """True when ``row`` takes new submissions: ground truth installed and open."""
     return row.ground_truth_installed and row.is_open
 
 
-def submission_status(row: Challenge) -> str:
+def submission_status(row: ChallengeRecord) -> str:
     """``"open"``, ``"closed"`` or :data:`NOT_INSTALLED`, as the pages and the API say it."""
     if not row.ground_truth_installed:
         return NOT_INSTALLED
@@ -66,7 +65,7 @@ def install_hint(name: str) -> str:
     return f"semantic3d admin add-challenge {name} --ground-truth DIR"
 
 
-def shows_confusion(row: Challenge) -> bool:
+def shows_confusion(row: ChallengeRecord) -> bool:
     """Whether participants (owners included) see confusion matrices of this challenge.
 
     The challenge's ``show_confusion`` when set, else at least :data:`CONFUSION_MIN_SCANS`
@@ -82,7 +81,7 @@ def ground_truth_folder(settings: Settings, name: str) -> Path:
     return settings.ground_truth_dir / name
 
 
-def build_challenge(settings: Settings, row: Challenge) -> EvaluationChallenge:
+def build_challenge(settings: Settings, row: ChallengeRecord) -> Challenge:
     """The evaluation's :class:`~semantic3d.evaluation.Challenge` for a stored challenge.
 
     Point counts recorded at installation fill the scans that lack one (custom
@@ -107,9 +106,9 @@ class ChallengeCache:
     def __init__(self, settings: Settings) -> None:
         self._settings = settings
         self._lock = threading.Lock()
-        self._built: dict[tuple[str, int], EvaluationChallenge] = {}
+        self._built: dict[tuple[str, int], Challenge] = {}
 
-    def get(self, row: Challenge) -> EvaluationChallenge:
+    def get(self, row: ChallengeRecord) -> Challenge:
         """The challenge for ``row`` (rebuilt when the row was re-installed)."""
         key = (row.name, row.id)
         with self._lock:
@@ -131,7 +130,7 @@ def install_challenge(
     title: str | None = None,
     description: str = "",
     show_confusion: bool | None = None,
-) -> Challenge:
+) -> ChallengeRecord:
     """Install a challenge from a folder of ground-truth ``.labels`` files.
 
     ``name`` ``semantic-8``/``reduced-8`` installs the benchmark's challenge (the folder
@@ -154,7 +153,9 @@ def install_challenge(
         raise InvalidInputError(f"{ground_truth}: expected .labels files, found none")
     settings.prepare_data_dir()
     with factory() as session:
-        listed = session.scalars(select(Challenge).where(Challenge.name == name)).one_or_none()
+        listed = session.scalars(
+            select(ChallengeRecord).where(ChallengeRecord.name == name)
+        ).one_or_none()
     if listed is not None and listed.ground_truth_installed:
         raise InvalidInputError(f"challenge {name!r} is already installed")
     target = ground_truth_folder(settings, name)
@@ -167,7 +168,7 @@ def install_challenge(
         for path in files:
             _place(path, staging / path.name, link=link)
         staging.rename(target)
-        row = Challenge(
+        row = ChallengeRecord(
             name=name,
             kind=name if name in BENCHMARK_CHALLENGES else "custom",
             title=title or (listed.title if listed is not None else name),
@@ -200,9 +201,9 @@ def install_challenge(
     return row
 
 
-def _complete_listed(session: Session, challenge_id: int, installed: Challenge) -> None:
+def _complete_listed(session: Session, challenge_id: int, installed: ChallengeRecord) -> None:
     """Fill the listed (not yet installed) challenge ``challenge_id`` from ``installed``."""
-    row = session.get(Challenge, challenge_id)
+    row = session.get(ChallengeRecord, challenge_id)
     if row is None or row.ground_truth_installed:
         raise InvalidInputError(f"challenge {installed.name!r} already exists")
     for column in (
@@ -230,17 +231,17 @@ def _place(source: Path, target: Path, *, link: bool) -> None:
         shutil.copyfile(source, target)
 
 
-def list_challenges(factory: sessionmaker[Session]) -> list[Challenge]:
+def list_challenges(factory: sessionmaker[Session]) -> list[ChallengeRecord]:
     """Every challenge: the benchmark's own first (semantic-8, reduced-8), then by name."""
     with factory() as session:
-        rows = list(session.scalars(select(Challenge).order_by(Challenge.name)))
+        rows = list(session.scalars(select(ChallengeRecord).order_by(ChallengeRecord.name)))
     order = {name: position for position, name in enumerate(BENCHMARK_CHALLENGES)}
     return sorted(rows, key=lambda row: (order.get(row.name, len(order)), row.name))
 
 
-def get_challenge(session: Session, name: str) -> Challenge:
+def get_challenge(session: Session, name: str) -> ChallengeRecord:
     """The challenge called ``name`` or :class:`NotFoundError`."""
-    row = session.scalars(select(Challenge).where(Challenge.name == name)).one_or_none()
+    row = session.scalars(select(ChallengeRecord).where(ChallengeRecord.name == name)).one_or_none()
     if row is None:
         raise NotFoundError(f"no challenge named {name!r}")
     return row

@@ -11,9 +11,7 @@ portable compare-and-set updates (SQLite and PostgreSQL alike).
 
 from __future__ import annotations
 
-import json
 import logging
-import math
 from dataclasses import dataclass
 from datetime import datetime, timedelta
 from typing import Any
@@ -33,6 +31,7 @@ from semantic3d.server.models import (
     Submission,
     utc_now,
 )
+from semantic3d.server.services.scores import StoredScores
 from semantic3d.server.settings import Settings
 
 logger = logging.getLogger(__name__)
@@ -165,14 +164,13 @@ def complete(
     factory: sessionmaker[Session],
     lease: Lease,
     *,
-    result: dict[str, Any],
-    mean_iou: float,
-    overall_accuracy: float,
-    iou: list[float | None],
-    n_points: int,
+    scores: StoredScores,
     progress_total: int,
 ) -> bool:
-    """Record a finished evaluation; ``False`` (nothing written) if the lease was lost."""
+    """Record a finished evaluation; ``False`` (nothing written) if the lease was lost.
+
+    ``scores`` comes from :func:`~semantic3d.server.services.scores.stored_scores`.
+    """
     now = utc_now()
     with write_transaction(factory) as session:
         finished = session.execute(
@@ -193,16 +191,7 @@ def complete(
         session.execute(
             update(Submission)
             .where(Submission.id == lease.submission_id)
-            .values(
-                in_flight=False,
-                finished_at=now,
-                error=None,
-                mean_iou=mean_iou if math.isfinite(mean_iou) else None,
-                overall_accuracy=overall_accuracy if math.isfinite(overall_accuracy) else None,
-                iou_json=json.dumps(iou),
-                n_points=n_points,
-                result_json=json.dumps(result, sort_keys=True),
-            )
+            .values(in_flight=False, finished_at=now, error=None, **scores.columns())
             .execution_options(synchronize_session=False)
         )
     logger.info("job %d done by %s", lease.job_id, lease.worker_id)

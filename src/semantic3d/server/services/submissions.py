@@ -9,9 +9,7 @@ problem at once and leaves nothing behind: no upload, no file, no queued job.
 
 from __future__ import annotations
 
-import json
 import logging
-import math
 import os
 import uuid
 from datetime import datetime, timedelta
@@ -22,8 +20,7 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 
 from semantic3d.core.errors import SubmissionError
-from semantic3d.evaluation import EvaluationResult, MethodInfo, validate_submission
-from semantic3d.server.challenges import NOT_INSTALLED, ChallengeCache, get_challenge
+from semantic3d.evaluation import MethodInfo, validate_submission
 from semantic3d.server.db import lock_user, write_transaction
 from semantic3d.server.errors import (
     InvalidInputError,
@@ -38,44 +35,15 @@ from semantic3d.server.models import (
     UploadSession,
     utc_now,
 )
+from semantic3d.server.schemas import MethodCard, Progress, SubmissionInfo, SubmissionScores
+from semantic3d.server.services.challenges import NOT_INSTALLED, ChallengeCache, get_challenge
+from semantic3d.server.services.methods import method_columns, method_of, validate_method
+from semantic3d.server.services.scores import result_of, stored_iou
+from semantic3d.server.services.upload_files import locked_part, part_path, upload_sha256
+from semantic3d.server.services.uploads import delete_upload, owned_upload
 from semantic3d.server.settings import Settings
-from semantic3d.server.uploads import (
-    delete_upload,
-    locked_part,
-    owned_upload,
-    part_path,
-    upload_sha256,
-)
 
 logger = logging.getLogger(__name__)
-
-
-def validate_method(method: MethodInfo) -> MethodInfo:
-    """Check a method card's fields; links must be http(s) (they are shown as links)."""
-    problems = []
-    if not method.name.strip() or len(method.name) > 200:
-        problems.append(f"method name: expected 1-200 characters, found {len(method.name)}")
-    for field, value in (("paper_url", method.paper_url), ("code_url", method.code_url)):
-        if value and (not value.startswith(("http://", "https://")) or len(value) > 500):
-            problems.append(f"{field}: expected an http(s) address, found {value[:60]!r}")
-    if method.runtime_s is not None and not (
-        math.isfinite(method.runtime_s) and method.runtime_s >= 0
-    ):
-        problems.append(f"runtime_s: expected seconds >= 0, found {method.runtime_s}")
-    if method.hardware is not None and len(method.hardware) > 200:
-        problems.append("hardware: expected at most 200 characters")
-    if len(method.description) > 20_000:
-        problems.append("description: expected at most 20000 characters")
-    if problems:
-        raise InvalidInputError("; ".join(problems))
-    return MethodInfo(
-        name=method.name.strip(),
-        runtime_s=method.runtime_s,
-        hardware=method.hardware.strip() if method.hardware else None,
-        description=method.description.strip(),
-        paper_url=method.paper_url.strip(),
-        code_url=method.code_url.strip(),
-    )
 
 
 def check_quota(
@@ -222,12 +190,7 @@ def _accept(
                 challenge_id=challenge_row.id,
                 created_at=now,
                 in_flight=True,
-                method_name=method.name,
-                description=method.description,
-                paper_url=method.paper_url,
-                code_url=method.code_url,
-                runtime_s=method.runtime_s,
-                hardware=method.hardware,
+                **method_columns(method),
                 filename=upload.filename,
                 stored_name=stored_name,
                 size_bytes=upload.size_bytes,
@@ -304,53 +267,43 @@ def user_submissions(factory: sessionmaker[Session], user_id: int) -> list[Submi
         return rows
 
 
-def result_of(submission: Submission) -> EvaluationResult | None:
-    """The stored evaluation result (``None`` until evaluated)."""
-    if submission.result_json is None:
-        return None
-    return EvaluationResult.from_dict(json.loads(submission.result_json))
-
-
-def submission_dict(
+def submission_info(
     submission: Submission, *, owner: bool, confusion: bool = False
-) -> dict[str, Any]:
-    """JSON view of a submission; errors only for its owner, per-scan scores never.
+) -> SubmissionInfo:
+    """The API's view of a submission; errors only for its owner, per-scan scores never.
 
     ``confusion=False`` leaves the confusion matrix out (``null``): the challenge's policy
-    (:func:`semantic3d.server.challenges.shows_confusion`) decides who sees it.
+    (:func:`semantic3d.server.services.challenges.shows_confusion`) decides who sees it.
     """
     job = submission.job
-    data: dict[str, Any] = {
-        "id": submission.id,
-        "challenge": submission.challenge.name,
-        "status": job.status,
-        "progress": {"done": job.progress_done, "total": job.progress_total},
-        "created_at": submission.created_at.isoformat(),
-        "finished_at": submission.finished_at.isoformat() if submission.finished_at else None,
-        "published": submission.published,
-        "method": {
-            "name": submission.method_name,
-            "description": submission.description,
-            "paper_url": submission.paper_url,
-            "code_url": submission.code_url,
-            "runtime_s": submission.runtime_s,
-            "hardware": submission.hardware,
-        },
-        "scores": None,
-    }
-    if owner:
-        data["filename"] = submission.filename
-        data["size_bytes"] = submission.size_bytes
-        data["sha256"] = submission.sha256
-        data["error"] = submission.error
-        data["attempts"] = job.attempts
+    scores = None
     if submission.mean_iou is not None:
-        result = result_of(submission) if confusion else None
-        data["scores"] = {
-            "mean_iou": submission.mean_iou,
-            "overall_accuracy": submission.overall_accuracy,
-            "iou": json.loads(submission.iou_json or "[]"),
-            "n_points": submission.n_points,
-            "confusion": result.confusion.tolist() if result is not None else None,
+        result = result_of(submission)
+        scores = SubmissionScores(
+            mean_iou=submission.mean_iou,
+            overall_accuracy=submission.overall_accuracy,
+            iou=list(stored_iou(submission.iou_json)),
+            n_points=result.n_points if result is not None else 0,
+            confusion=result.confusion.tolist() if result is not None and confusion else None,
+        )
+    owner_fields: dict[str, Any] = {}
+    if owner:
+        owner_fields = {
+            "filename": submission.filename,
+            "size_bytes": submission.size_bytes,
+            "sha256": submission.sha256,
+            "error": submission.error,
+            "attempts": job.attempts,
         }
-    return data
+    return SubmissionInfo(
+        id=submission.id,
+        challenge=submission.challenge.name,
+        status=job.status,
+        progress=Progress(done=job.progress_done, total=job.progress_total),
+        created_at=submission.created_at,
+        finished_at=submission.finished_at,
+        published=submission.published,
+        method=MethodCard.from_method(method_of(submission)),
+        scores=scores,
+        **owner_fields,
+    )
