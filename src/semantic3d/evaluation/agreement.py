@@ -32,6 +32,7 @@ import logging
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -126,12 +127,14 @@ def _spill_scan(
     return kept
 
 
-_EXCLUDED = np.array(EXCLUDED_VALUES, dtype=np.uint8)
+def _eligible(labels: NDArray[Any]) -> NDArray[np.bool_]:
+    """Labels that take part in a pair (not unlabelled, not an artefact).
 
-
-def _eligible(rows: NDArray[np.float64]) -> NDArray[np.bool_]:
-    """Rows whose own label can receive one (not unlabelled, not an artefact)."""
-    return ~np.isin(rows[:, 3], _EXCLUDED)
+    Two comparisons: several times faster than ``np.isin`` on a float column.
+    """
+    first, second = EXCLUDED_VALUES
+    eligible: NDArray[np.bool_] = (labels != first) & (labels != second)
+    return eligible
 
 
 def _rows(points: TilePoints) -> NDArray[np.float64]:
@@ -183,7 +186,7 @@ def _match_tile(
         # neighbour (voxels are at least max_distance_m wide).
         receiving = _gather(
             core[receiver],
-            grid.touching(marks[source], core_keys[receiver]) & _eligible(core[receiver]),
+            grid.touching(marks[source], core_keys[receiver]) & _eligible(core[receiver][:, 3]),
         )
         giving = np.concatenate(
             [
@@ -204,7 +207,7 @@ def _match_tile(
         )
         hit = np.flatnonzero(np.isfinite(distance))
         taken = np.take(giving[:, 3], np.take(index, hit)).astype(np.uint8)
-        valid = ~np.isin(taken, _EXCLUDED)  # the pair's other end is no artefact/unlabelled
+        valid = _eligible(taken)  # the pair's other end is no artefact, not unlabelled
         hit, taken = hit[valid], taken[valid]
         own = np.take(receiving[:, 3], hit).astype(np.uint8)
         # matrices[_B] collects A's labels onto B's points (direction A→B).
