@@ -111,7 +111,6 @@ def _spill_scan(
 ) -> int:
     """Bin a scan's points (less the excluded labels when ``exclude``); return how many
     points can receive a label (those not excluded)."""
-    excluded = np.array(EXCLUDED_VALUES, dtype=np.uint8)
     kept = 0
     for chunk in chunks:
         if chunk.labels is None:
@@ -121,7 +120,7 @@ def _spill_scan(
                 f"scan {name}: expected label values 0..{N_CLASSES}, "
                 f"found {int(chunk.labels.max())}"
             )
-        keep = ~np.isin(chunk.labels, excluded)
+        keep = _eligible(chunk.labels)
         writer.add(chunk, keep=keep if exclude else None)
         kept += int(keep.sum())
     return kept

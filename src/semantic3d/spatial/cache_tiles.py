@@ -15,6 +15,8 @@ from pathlib import Path
 
 from semantic3d.core.errors import DataFormatError
 from semantic3d.core.pointcloud import PointCloud
+from semantic3d.io.cache_meta import META_FILE
+from semantic3d.io.chunks import DEFAULT_CHUNK_SIZE
 from semantic3d.spatial.grid import TileGrid
 from semantic3d.spatial.store import TileStore, build_tile_store
 
@@ -23,14 +25,12 @@ __all__ = ["DEFAULT_CACHE_TILE_SIZE_M", "open_cache_tiles"]
 DEFAULT_CACHE_TILE_SIZE_M = 25.6
 """Default tile edge of a cache's tile store."""
 
-_META_FILE = "meta.json"
-
 
 def _fingerprint(cache: Path) -> str:
-    meta = cache / _META_FILE
+    meta = cache / META_FILE
     if not meta.is_file():
         raise DataFormatError(
-            f"expected a cache folder holding {_META_FILE}, found none", path=str(cache)
+            f"expected a cache folder holding {META_FILE}, found none", path=str(cache)
         )
     return hashlib.sha256(meta.read_bytes()).hexdigest()
 
@@ -39,7 +39,7 @@ def open_cache_tiles(
     cache: str | Path,
     *,
     tile_size_m: float = DEFAULT_CACHE_TILE_SIZE_M,
-    chunk_size: int = 1 << 20,
+    chunk_size: int = DEFAULT_CHUNK_SIZE,
     progress: Callable[[int], None] | None = None,
 ) -> TileStore:
     """The tile store of the cache folder ``cache``, built on first use.

@@ -57,8 +57,6 @@ RunProgress = Callable[[int, int, int], None]
 """``progress(scan_index, points_labelled_in_all_scans, n_points_of_all_scans)``; the total
 is an estimate (from the files' sizes) until every scan has been read."""
 
-DEFAULT_CHUNK_SIZE = 1 << 20
-
 
 @dataclass(frozen=True, slots=True)
 class LabelledBlock:

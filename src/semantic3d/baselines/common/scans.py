@@ -17,6 +17,7 @@ from numpy.typing import NDArray
 
 from semantic3d.core.errors import Semantic3DError
 from semantic3d.core.pointcloud import PointCloud
+from semantic3d.io.chunks import DEFAULT_CHUNK_SIZE
 
 __all__ = ["LabelledScan", "TrainingDataError", "find_labelled_scans"]
 
@@ -41,13 +42,13 @@ class LabelledScan:
     points_path: Path
     labels_path: Path | None = None
 
-    def iter_points(self, *, chunk_size: int = 1 << 20) -> Iterator[PointCloud]:
+    def iter_points(self, *, chunk_size: int = DEFAULT_CHUNK_SIZE) -> Iterator[PointCloud]:
         """The scan's points with their labels, streamed."""
         from semantic3d.io.formats import iter_points
 
         return iter_points(self.points_path, labels_path=self.labels_path, chunk_size=chunk_size)
 
-    def iter_labels(self, *, chunk_size: int = 1 << 20) -> Iterator[NDArray[np.uint8]]:
+    def iter_labels(self, *, chunk_size: int = DEFAULT_CHUNK_SIZE) -> Iterator[NDArray[np.uint8]]:
         """The scan's label values in point order, streamed (the ``.labels`` file alone if any)."""
         if self.labels_path is not None:
             from semantic3d.io.labels import iter_labels
