@@ -1,6 +1,6 @@
 """Throughput, memory and accuracy of the 3D covariance baseline, against the usual peers.
 
-Sections (``--only features,forest,predict,memory,accuracy``; default all):
+Sections (``--only features,forest,predict,memory,accuracy,peers``; default all):
 
 - features: multi-scale features (pyramid + k-NN + eigen features) in points/s, against
   pgeof run level by level on the same pyramid (k-NN + its features), pgeof at one scale
@@ -14,6 +14,12 @@ Sections (``--only features,forest,predict,memory,accuracy``; default all):
 - memory: peak RSS of tiled prediction of 1x and 4x larger scans (subprocesses).
 - accuracy: CMU Oakland (Munoz et al., CVPR 2009), train on 6 scans, validate on 4,
   per-class IoU, mIoU and OA for the multi-scale pyramid, single scales and per-point mode.
+- peers: end to end on a folder of scans in one process (read ASCII, features, classify,
+  write .labels for the 4 Oakland validation scans), points/s, CPU time and peak RSS of a
+  fresh process each, against the pipeline a user assembles from jakteristics (its 27
+  features at radii 0.25, 0.5, 1, 2 m + height above the scan's lowest point) and a
+  scikit-learn forest (50 trees, depth 20) trained on the same class-balanced sample
+  size; both models trained on the same 6 scans, and their mIoU / OA on the 4 scans.
 
 Every timing is the best of ``--repeat`` runs (the machine may be shared). Needs the
 real samples in ../shared/data; pgeof and jakteristics are optional peers
@@ -26,6 +32,7 @@ import argparse
 import dataclasses
 import os
 import resource
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -309,10 +316,149 @@ def bench_accuracy(data: Path) -> None:
         print(f"{name:45s} {cells}")
 
 
+PEER_RADII = (0.25, 0.5, 1.0, 2.0)
+
+
+def peer_features(cloud: PointCloud, points: np.ndarray | None = None) -> np.ndarray:
+    """jakteristics' 27 features at 4 radii + height above the scan's lowest point."""
+    import jakteristics
+
+    xyz = cloud.xyz - cloud.xyz.min(axis=0)
+    queries = xyz if points is None else xyz[points]
+    tree = jakteristics.cKDTree(xyz)
+    parts = [
+        jakteristics.compute_features(queries, search_radius=r, kdtree=tree, num_threads=-1)
+        for r in PEER_RADII
+    ]
+    parts.append(queries[:, 2:3])
+    return np.nan_to_num(np.hstack(parts).astype(np.float32))
+
+
+def train_peer(data: Path, path: Path, points_per_class: int, seed: int = 0) -> None:
+    import joblib
+    from sklearn.ensemble import RandomForestClassifier
+
+    rng = np.random.default_rng(seed)
+    clouds = [
+        read_ascii_points(
+            data / f"oakland_part2_{s}.txt", labels_path=data / f"oakland_part2_{s}.labels"
+        )
+        for s in TRAIN
+    ]
+    labels = np.concatenate([c.labels for c in clouds])  # type: ignore[misc]
+    owner = np.concatenate([np.full(c.n_points, i) for i, c in enumerate(clouds)])
+    offset = np.concatenate([np.arange(c.n_points) for c in clouds])
+    picks = []
+    for value in np.unique(labels[labels > 0]):
+        members = np.flatnonzero(labels == value)
+        picks.append(rng.choice(members, size=min(points_per_class, members.size), replace=False))
+    chosen = np.concatenate(picks)
+    x = np.vstack(
+        [
+            peer_features(c, np.sort(offset[chosen[owner[chosen] == i]]))
+            for i, c in enumerate(clouds)
+        ]
+    )
+    y = np.concatenate(
+        [c.labels[np.sort(offset[chosen[owner[chosen] == i]])] for i, c in enumerate(clouds)]  # type: ignore[index]
+    )
+    forest = RandomForestClassifier(n_estimators=50, max_depth=20, n_jobs=-1, random_state=seed)
+    joblib.dump(forest.fit(x, y), path)
+
+
+def run_child(kind: str, model_path: Path, scans: list[Path], out: Path) -> None:
+    """One contender, end to end over ``scans``; prints points, wall s, CPU s, peak RSS KiB."""
+    started, cpu = time.perf_counter(), time.process_time()
+    n_points = 0
+    if kind == "ours":
+        from semantic3d.baselines.common.submission import ScanToLabel
+        from semantic3d.baselines.covariance.persistence import load_model
+        from semantic3d.baselines.covariance.predict import predict_scans
+
+        model = load_model(model_path)
+        result = predict_scans(
+            model, [ScanToLabel(p.stem, p, p.stem + ".labels") for p in scans], out
+        )
+        n_points = result.n_points
+    else:
+        import joblib
+
+        forest = joblib.load(model_path)
+        forest.set_params(n_jobs=-1)
+        out.mkdir(parents=True, exist_ok=True)
+        for path in scans:
+            cloud = read_ascii_points(path)
+            labels = forest.predict(peer_features(cloud)).astype(np.uint8)
+            np.savetxt(out / f"{path.stem}.labels", labels, fmt="%d")
+            n_points += cloud.n_points
+    print(
+        n_points,
+        time.perf_counter() - started,
+        time.process_time() - cpu,
+        resource.getrusage(resource.RUSAGE_SELF).ru_maxrss,
+    )
+
+
+def bench_peers(data: Path, repeat: int) -> None:
+    print("\n== end to end on a folder (4 Oakland scans): ours vs jakteristics + scikit-learn")
+    config = CovarianceConfig()
+    scans = [data / f"oakland_part2_{s}.txt" for s in VALIDATE]
+    with tempfile.TemporaryDirectory() as tmp:
+        ours_model, peer_model = Path(tmp) / "ours.model", Path(tmp) / "peer.joblib"
+        from semantic3d.baselines.covariance.persistence import save_model
+
+        started = time.perf_counter()
+        save_model(fit_model(training_set(data, config, TRAIN), config=config), ours_model)
+        print(f"trained ours in {time.perf_counter() - started:.0f} s")
+        started = time.perf_counter()
+        train_peer(data, peer_model, config.sampling.points_per_class)
+        print(f"trained jakteristics + scikit-learn in {time.perf_counter() - started:.0f} s")
+        best: dict[str, tuple[float, float, float, int]] = {}
+        for _ in range(repeat):
+            for kind, model in (("ours", ours_model), ("jakteristics + sklearn", peer_model)):
+                out = Path(tmp) / kind.replace(" ", "_")
+                shutil.rmtree(out, ignore_errors=True)
+                code = [
+                    sys.executable,
+                    __file__,
+                    "--child",
+                    "ours" if kind == "ours" else "peer",
+                    str(model),
+                    str(out),
+                    *map(str, scans),
+                ]
+                line = subprocess.run(code, capture_output=True, text=True, check=True)
+                n, wall, cpu, rss = line.stdout.split()[-4:]
+                if kind not in best or float(wall) < best[kind][0]:
+                    best[kind] = (float(wall), float(cpu), int(rss) / 1024, int(n))
+                if kind not in SCORES:
+                    matrix = ConfusionMatrix()
+                    for scan in scans:
+                        matrix.update(
+                            read_labels(scan.with_suffix(".labels")),
+                            read_labels(out / f"{scan.stem}.labels"),
+                        )
+                    SCORES[kind] = matrix.compute_scores()
+        for kind, (wall, cpu, rss, n) in best.items():
+            scores = SCORES[kind]
+            print(
+                f"{kind:24s} {n / wall / 1e3:6.0f} k points/s ({wall:.1f} s, CPU {cpu:.1f} s), "
+                f"peak RSS {rss:5.0f} MiB, mIoU {scores.mean_iou:.3f}, OA "
+                f"{scores.overall_accuracy:.3f}"
+            )
+
+
+SCORES: dict[str, Any] = {}
+
+
 def main() -> None:
+    if len(sys.argv) > 1 and sys.argv[1] == "--child":
+        kind, model, out, *scans = sys.argv[2:]
+        run_child(kind, Path(model), [Path(s) for s in scans], Path(out))
+        return
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, default=DATA)
-    parser.add_argument("--only", default="features,forest,predict,memory,accuracy")
+    parser.add_argument("--only", default="features,forest,predict,memory,accuracy,peers")
     parser.add_argument("--repeat", type=int, default=3)
     args = parser.parse_args()
     oakland = args.data / "oakland"
@@ -344,6 +490,8 @@ def main() -> None:
         bench_memory(oakland, model_path)
     if "accuracy" in only:
         bench_accuracy(oakland)
+    if "peers" in only:
+        bench_peers(oakland, args.repeat)
     print(f"\npeak RSS of this process: {peak_rss_mib():.0f} MiB")
 
 

@@ -85,6 +85,28 @@ def test_train_then_predict(
     ]
 
 
+def test_train_with_grid_search_fits_and_records_the_chosen_forest(
+    app: typer.Typer, scene_dir: Path, config_file: Path, tmp_path: Path
+) -> None:
+    from semantic3d.baselines.covariance.persistence import load_model, read_model_header
+
+    model_path = tmp_path / "m.s3d"
+    args = ["--data", str(scene_dir), "--config", str(config_file), "--out", str(model_path)]
+    result = runner.invoke(app, ["baseline", "covariance", "train", *args, "--grid-search"])
+    assert result.exit_code == 0, result.output
+    assert "grid search (jaccard_macro, 3 folds grouped by scan) chose" in result.output
+    header = read_model_header(model_path)
+    search = header["grid_search"]
+    assert search["n_splits"] == 3 and len(search["results"]) == 2  # depth 3 and 8
+    chosen = search["best_params"]
+    assert chosen["max_depth"] in (3, 8) and chosen["n_estimators"] == 4
+    assert header["config"]["forest"]["max_depth"] == chosen["max_depth"]
+    assert header["config"]["forest"]["n_estimators"] == 4  # not the file's 8
+    model = load_model(model_path)
+    assert model.classifier.forest_.max_depth == chosen["max_depth"]
+    assert model.grid_search is not None and model.grid_search.best_params == chosen
+
+
 def test_cv_prints_the_grid_and_writes_json(
     app: typer.Typer, scene_dir: Path, config_file: Path, tmp_path: Path
 ) -> None:

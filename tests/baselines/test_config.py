@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import tomllib
 from pathlib import Path
 
@@ -18,6 +19,7 @@ from semantic3d.baselines.covariance.config import (
     config_from_dict,
     config_to_dict,
     load_config,
+    preset_config,
 )
 from semantic3d.core.classes import LABEL_VALUES
 from semantic3d.core.config import config_to_toml
@@ -192,3 +194,24 @@ def test_a_configuration_survives_the_toml_round_trip(
     path.write_text(config_to_toml(config))
     assert load_config(path) == config
     assert config_from_dict(tomllib.loads(path.read_text())) == config
+
+
+def test_a_preset_fills_every_key_the_file_leaves_out(tmp_path: Path) -> None:
+    path = tmp_path / "c.toml"
+    path.write_text('preset = "paper"\n[forest]\nn_estimators = 7\n')
+    config = load_config(path)
+    assert config == dataclasses.replace(
+        preset_config("paper"), forest=ForestConfig(n_estimators=7)
+    )
+    assert config.features.cylinders and not config.features.spherical_height
+    assert config.grid_search.select_forest
+    assert config_from_dict(config_to_dict(config)) == config
+    path.write_text('preset = "default"\n')
+    assert load_config(path) == CovarianceConfig() == preset_config("default")
+
+
+def test_an_unknown_preset_is_rejected(tmp_path: Path) -> None:
+    path = tmp_path / "c.toml"
+    path.write_text('preset = "papr"\n')
+    with pytest.raises(ConfigError, match=r"c.toml: preset: expected one of default, paper"):
+        load_config(path)

@@ -296,3 +296,35 @@ def test_a_fresh_core_install_in_its_own_venv(tmp_path: Path, core_folder: Path)
     assert done.returncode == 2 and "pip install 'semantic3d[las]'" in done.stderr
     done = run("serve")
     assert done.returncode == 2 and "pip install 'semantic3d[server]'" in done.stderr
+
+
+def test_small_inputs_load_no_compiled_kernels(core_folder: Path) -> None:
+    """Importing numba and loading its kernels (which pulls in scipy) costs over a
+    CPU-second; small files are parsed and counted with numpy instead."""
+    commands = [
+        ["info", "scan.txt"],
+        ["validate", "pred", "--gt", "gt"],
+        ["evaluate", "--gt", "gt", "--pred", "pred"],
+    ]
+    code = textwrap.dedent(f"""
+        import contextlib, io, json, sys
+        from semantic3d.cli.app import main
+        results = []
+        for args in {commands!r}:
+            sys.argv = ["semantic3d", *args]
+            status = 0
+            with contextlib.redirect_stdout(io.StringIO()) as shown:
+                try:
+                    main()
+                except SystemExit as exc:
+                    status = exc.code or 0
+            results.append([status, shown.getvalue()])
+        loaded = sorted({{m.partition(".")[0] for m in sys.modules}})
+        print(json.dumps([results, loaded]))
+    """)
+    done = _python(code, cwd=core_folder)
+    assert done.returncode == 0, done.stderr
+    results, loaded = json.loads(done.stdout)
+    assert [status for status, _ in results] == [0, 0, 0], results
+    assert "300" in results[0][1] and "valid" in results[1][1] and "mIoU" in results[2][1]
+    assert [name for name in ("numba", "llvmlite", "scipy", "sklearn") if name in loaded] == []

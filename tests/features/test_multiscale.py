@@ -14,7 +14,7 @@ from semantic3d.core.errors import ShapeError
 from semantic3d.features import ConfigError, FeatureConfig, compute_multiscale_features
 from semantic3d.features.attributes import compute_attribute_features
 from semantic3d.features.multiscale import distinct_voxels
-from semantic3d.features.names import GEOMETRIC_FEATURES, parse_column_name
+from semantic3d.features.names import CYLINDER_FEATURES, GEOMETRIC_FEATURES, parse_column_name
 from semantic3d.features.scan import iter_scan_features
 from semantic3d.features.tiling import TiledScan
 from semantic3d.io.chunks import rechunk
@@ -39,7 +39,8 @@ def test_names_doctests_pass() -> None:
 def test_columns_are_named_level_major() -> None:
     config = FeatureConfig(base_voxel_size_m=0.05, n_levels=3, colour=True)
     names = config.feature_names
-    assert len(names) == config.n_features == 3 * (len(GEOMETRIC_FEATURES) + 3)
+    per_level = len(GEOMETRIC_FEATURES) + 1 + 3  # + cylinder_below + hue saturation value
+    assert len(names) == config.n_features == 3 * per_level
     assert names[0] == "sum_of_eigenvalues@0.050m"
     assert parse_column_name(names[-1]) == ("value", 0.2)
     with pytest.raises(ValueError, match="expected '<feature>@<size>m'"):
@@ -90,8 +91,10 @@ def test_coarse_levels_with_fewer_points_than_k_use_all_of_them() -> None:
     config = FeatureConfig(base_voxel_size_m=0.05, n_levels=6, k_neighbours=10)
     table = compute_multiscale_features(PointCloud.from_arrays(xyz), config=config)
     assert np.isfinite(table.values).all()
-    top = table.values[:, -len(GEOMETRIC_FEATURES) :]
+    top = table.values[:, -len(config.level_feature_names) :]
     assert np.all(top[:, GEOMETRIC_FEATURES.index("vertical_range")] == top[0, 13])  # one voxel
+    column = config.level_feature_names.index("cylinder_below")
+    assert np.all(top[:, column] == 0.0)  # one voxel in every top-level cylinder
 
 
 @pytest.mark.parametrize(
@@ -102,7 +105,14 @@ def test_coarse_levels_with_fewer_points_than_k_use_all_of_them() -> None:
 def test_tiled_features_equal_whole_scan_features_bit_for_bit(
     scene: PointCloud, per_point: bool, whole_level_points: int, tmp_path
 ) -> None:
-    config = FeatureConfig(**{**_fields(SMALL), "per_point": per_point, "colour": True})
+    config = FeatureConfig(
+        **{
+            **_fields(SMALL),
+            "per_point": per_point,
+            "colour": True,
+            "cylinder_features": CYLINDER_FEATURES,
+        }
+    )
     expected = compute_multiscale_features(scene, config=config).point_values()
     got = np.full_like(expected, np.nan)
     seen = np.zeros(scene.n_points, bool)

@@ -30,8 +30,10 @@ _COMMAND_MODULES = (
     "semantic3d.cli.convert",
     "semantic3d.cli.download",
     "semantic3d.cli.simulate",
+    "semantic3d.cli.cubemap",
     "semantic3d.cli.evaluate",
     "semantic3d.cli.baseline",
+    "semantic3d.cli.label",
     "semantic3d.cli.server",
 )
 

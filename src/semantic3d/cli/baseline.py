@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING
 import typer
 
 from semantic3d.cli import console as ui
+from semantic3d.cli.cluster import open_cluster, scheduler_option, workers_option
 from semantic3d.cli.console import (
     MARKUP_MODE,
     escape,
@@ -27,6 +28,7 @@ from semantic3d.cli.console import (
 )
 
 if TYPE_CHECKING:
+    from semantic3d.baselines.common.prediction import Predictor
     from semantic3d.baselines.common.submission import ScanToLabel
     from semantic3d.baselines.covariance.config import CovarianceConfig
     from semantic3d.baselines.covariance.predict import PredictionRunSet
@@ -84,6 +86,13 @@ def train(
     seed: int | None = typer.Option(
         None, "--seed", help="Override the seed of the sampling section."
     ),
+    grid_search: bool = typer.Option(
+        False,
+        "--grid-search",
+        help="Choose the forest by the [grid_search] grid, cross-validated with folds grouped "
+        "by scan, then fit it (as [grid_search] select_forest = true); the chosen parameters "
+        "are recorded in the model file.",
+    ),
     overwrite: bool = typer.Option(False, "--overwrite", help=_OVERWRITE_HELP),
 ) -> None:
     """Train on labelled scans (class-balanced sample) and save the model."""
@@ -96,6 +105,10 @@ def train(
         )
 
         config = _config(config_path, seed)
+        if grid_search:
+            config = dataclasses.replace(
+                config, grid_search=dataclasses.replace(config.grid_search, select_forest=True)
+            )
         labelled = find_labelled_scans(data, names=_scan_names(scans))
         with progress_bar() as bar:
             task = bar.add_task("features of training points", total=len(labelled))
@@ -105,6 +118,13 @@ def train(
                 progress=lambda _stage, done, total: bar.update(task, completed=done, total=total),
             )
         save_model(model, out)
+        if model.grid_search is not None:
+            ui.console.print(
+                f"grid search ({model.grid_search.scoring}, {model.grid_search.n_splits} folds "
+                f"grouped by scan) chose {escape(str(model.grid_search.best_params))} "
+                f"({model.grid_search.best_score:.4f})",
+                highlight=False,
+            )
         counts = ", ".join(f"{v}: {n}" for v, n in sorted(model.n_training_points.items()))
         ui.console.print(
             f"trained on {plural(len(labelled), 'scan')} ({counts} points per label value) in "
@@ -136,6 +156,8 @@ def predict(
     ),
     workdir: Path | None = typer.Option(None, "--workdir", help="Scratch folder for tiles."),
     overwrite: bool = typer.Option(False, "--overwrite", help=_OVERWRITE_HELP),
+    scheduler: str | None = scheduler_option(),
+    workers: int | None = workers_option(),
 ) -> None:
     """Label scans with a trained model: one SCAN, or every scan of --data.
 
@@ -154,6 +176,7 @@ def predict(
             workdir=workdir,
             overwrite=overwrite,
             challenge=None if challenge is None else challenge.value,
+            cluster_options=(scheduler, workers),
         )
 
 
@@ -190,6 +213,7 @@ def _predict(
     workdir: Path | None,
     overwrite: bool,
     challenge: str | None,
+    cluster_options: tuple[str | None, int | None] = (None, None),
 ) -> None:
     from semantic3d.baselines.common.submission import (
         is_zip_output,
@@ -201,7 +225,7 @@ def _predict(
 
     refuse_existing_outputs(planned_outputs(target, scans), overwrite=overwrite)
     model = load_model(model_path)
-    with progress_bar() as bar:
+    with open_cluster(*cluster_options) as cluster, progress_bar() as bar:
         task = bar.add_task(f"labelling {plural(len(scans), 'scan')}", total=None)
 
         def update(index: int, done: int, total: int) -> None:
@@ -212,8 +236,13 @@ def _predict(
                 total=total or None,
             )
 
+        predictor: Predictor = model
+        if cluster is not None:  # tiles labelled by the workers (same labels)
+            from semantic3d.scale.predict import ClusterPredictor
+
+            predictor = ClusterPredictor(model, cluster)
         result = predict_scans(
-            model, scans, target, workdir=workdir, progress=update, overwrite=overwrite
+            predictor, scans, target, workdir=workdir, progress=update, overwrite=overwrite
         )
         bar.update(task, completed=result.n_points, total=result.n_points)
     _print_runs(result, zipped=is_zip_output(target), challenge=challenge)
@@ -328,4 +357,9 @@ def _finite(value: float) -> float | None:
 
 def register(app: typer.Typer) -> None:
     """Add the ``baseline`` command group to ``app``."""
+    from semantic3d.cli.baseline_cnn import cnn_app
+    from semantic3d.cli.baseline_image import image_app
+
+    baseline_app.add_typer(cnn_app, name="cnn")
+    baseline_app.add_typer(image_app, name="image")
     app.add_typer(baseline_app, name="baseline")

@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING
 import typer
 
 from semantic3d.cli import console as ui
+from semantic3d.cli.cluster import open_cluster, scheduler_option, workers_option
 from semantic3d.cli.console import (
     escape,
     fail,
@@ -172,6 +173,8 @@ def evaluate(
     hardware: str | None = typer.Option(None, "--hardware", help="What the method ran on."),
     overwrite: bool = typer.Option(False, "--overwrite", help=_OVERWRITE_HELP),
     runtime_alias: float | None = typer.Option(None, "--runtime", min=0, hidden=True),
+    scheduler: str | None = scheduler_option(),
+    workers: int | None = workers_option(),
 ) -> None:
     """Evaluate a submission against ground truth: IoU per class, mIoU, OA.
 
@@ -196,7 +199,10 @@ def evaluate(
         info = None
         if method is not None or runtime_s is not None or hardware is not None:
             info = MethodInfo(name=method or pred.stem, runtime_s=runtime_s, hardware=hardware)
-        with progress_bar(bytes_=True) as progress:
+        with (
+            open_cluster(scheduler, workers) as cluster,
+            progress_bar(bytes_=True) as progress,
+        ):
             task = progress.add_task(f"evaluating {pred.name}", total=None)
             try:
                 result = evaluate_submission(
@@ -204,6 +210,7 @@ def evaluate(
                     challenge=spec,
                     method=info,
                     progress=lambda done, total: progress.update(task, completed=done, total=total),
+                    map_scans=None if cluster is None else cluster.map,
                 )
             except SubmissionError as exc:
                 progress.stop()
@@ -321,6 +328,11 @@ def agreement(
         "(default, as the paper: search among all points, then leave out their pairs).",
     ),
     overwrite: bool = typer.Option(False, "--overwrite", help=_OVERWRITE_HELP),
+    scheduler: str | None = scheduler_option(),
+    workers: int | None = workers_option(),
+    workdir: Path | None = typer.Option(
+        None, "--workdir", help="Scratch folder for the tile stores (shared with the workers)."
+    ),
 ) -> None:
     """Label agreement of two overlapping scans: transfer labels A→B and B→A, score them."""
     if not (max_distance > 0 and tile_size > 0):
@@ -330,20 +342,21 @@ def agreement(
         )
     with guarded():
         from semantic3d.core.errors import require
-        from semantic3d.evaluation.agreement import compute_label_agreement_files
+        from semantic3d.evaluation.agreement import compute_label_agreement
+        from semantic3d.io.formats import iter_points
 
         require("scipy", "sim")  # k-d trees; fail before reading the scans
         if plot is not None:
             require("matplotlib", "viz")
         refuse_existing([plot] if plot is not None else [], overwrite=overwrite)
-        with progress_bar() as progress:
+        with open_cluster(scheduler, workers) as cluster, progress_bar() as progress:
             task = progress.add_task(f"reading {a_points.name} and {b_points.name}", total=None)
-            result = compute_label_agreement_files(
-                a_points,
-                a_labels,
-                b_points,
-                b_labels,
+            result = compute_label_agreement(
+                iter_points(a_points, labels_path=a_labels),
+                iter_points(b_points, labels_path=b_labels),
                 max_distance_m=max_distance,
+                spill_directory=workdir,
+                map_tiles=None if cluster is None else cluster.map,
                 tile_size_m=tile_size,
                 exclude_before_matching=exclude_first,
                 progress=lambda done, total: progress.update(

@@ -22,10 +22,13 @@ if TYPE_CHECKING:
     )
     from semantic3d.datasets.registry import (
         DEFAULT_BASE_URL,
+        REFERENCE_FOLDS,
+        REFERENCE_VALIDATION_FOLD,
         ArchiveFile,
         ScanInfo,
         Split,
         UnknownScanError,
+        reference_split,
         scan,
         scans,
         submission_name,
@@ -34,6 +37,8 @@ if TYPE_CHECKING:
 
 __all__ = [
     "DEFAULT_BASE_URL",
+    "REFERENCE_FOLDS",
+    "REFERENCE_VALIDATION_FOLD",
     "ArchiveFile",
     "DownloadProgress",
     "DownloadReport",
@@ -47,6 +52,7 @@ __all__ = [
     "download_file",
     "download_scans",
     "download_split",
+    "reference_split",
     "scan",
     "scans",
     "submission_name",
@@ -56,6 +62,8 @@ __getattr__, __dir__ = lazy_exports(
     __name__,
     {
         "DEFAULT_BASE_URL": "semantic3d.datasets.registry",
+        "REFERENCE_FOLDS": "semantic3d.datasets.registry",
+        "REFERENCE_VALIDATION_FOLD": "semantic3d.datasets.registry",
         "ArchiveFile": "semantic3d.datasets.registry",
         "DownloadProgress": "semantic3d.datasets.download",
         "DownloadReport": "semantic3d.datasets.download",
@@ -69,6 +77,7 @@ __getattr__, __dir__ = lazy_exports(
         "download_file": "semantic3d.datasets.download",
         "download_scans": "semantic3d.datasets.download",
         "download_split": "semantic3d.datasets.download",
+        "reference_split": "semantic3d.datasets.registry",
         "scan": "semantic3d.datasets.registry",
         "scans": "semantic3d.datasets.registry",
         "submission_name": "semantic3d.datasets.registry",

@@ -29,10 +29,13 @@ from semantic3d.core.errors import Semantic3DError
 __all__ = [
     "DEFAULT_BASE_URL",
     "LABELS_ARCHIVE",
+    "REFERENCE_FOLDS",
+    "REFERENCE_VALIDATION_FOLD",
     "ArchiveFile",
     "ScanInfo",
     "Split",
     "UnknownScanError",
+    "reference_split",
     "scan",
     "scans",
     "submission_name",
@@ -225,6 +228,34 @@ _SCANS: tuple[ScanInfo, ...] = (
         reduced_from="sg28_station2",
     ),
 )
+
+#: The fold of each training scan (in registry order, which is the sorted order of the file
+#: stems) in the split that KPConv (Thomas et al. 2019, ``datasets/Semantic3D.py``),
+#: RandLA-Net (Hu et al. 2020, ``main_Semantic3D.py``: "Following KPConv to do the
+#: train-validation split") and Open3D-ML (``ml3d/datasets/semantic3d.py``) share.
+REFERENCE_FOLDS: tuple[int, ...] = (0, 1, 4, 5, 3, 4, 3, 0, 1, 2, 3, 4, 2, 0, 5)
+
+#: The fold those projects validate on: bildstein_station3 and sg27_station2 (Open3D-ML's
+#: ``val_files``); they train on the other 13.
+REFERENCE_VALIDATION_FOLD = 1
+
+
+def reference_split() -> tuple[tuple[ScanInfo, ...], tuple[ScanInfo, ...]]:
+    """``(training, validation)`` scans of KPConv's / RandLA-Net's / Open3D-ML's split.
+
+    Train on the 13 and validate on the 2 to compare numbers with theirs.
+
+    >>> training, validation = reference_split()
+    >>> len(training), [info.name for info in validation]
+    (13, ['bildstein_station3', 'sg27_station2'])
+    """
+    train = scans(Split.TRAIN)
+    chosen = [fold == REFERENCE_VALIDATION_FOLD for fold in REFERENCE_FOLDS]
+    return (
+        tuple(info for info, held in zip(train, chosen, strict=True) if not held),
+        tuple(info for info, held in zip(train, chosen, strict=True) if held),
+    )
+
 
 _BY_NAME: dict[str, ScanInfo] = {info.name: info for info in _SCANS}
 _BY_STEM: dict[str, ScanInfo] = {info.stem: info for info in _SCANS}

@@ -29,8 +29,11 @@ are sparse far from their station), the rest is put in voxel order and matched w
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Iterable
+import tempfile
+import uuid
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -42,9 +45,15 @@ from semantic3d.core.errors import ShapeError, require
 from semantic3d.core.pointcloud import PointCloud
 from semantic3d.metrics.confusion import ConfusionMatrix
 from semantic3d.metrics.scores import Scores
-from semantic3d.spatial.grid import TileGrid
+from semantic3d.spatial.grid import TileGrid, TileKey
 from semantic3d.spatial.occupancy import OccupancyGrid
-from semantic3d.spatial.store import TemporaryTileStore, TilePoints, TileStoreWriter
+from semantic3d.spatial.store import (
+    TemporaryTileStore,
+    TilePoints,
+    TileStore,
+    TileStoreWriter,
+    xyz_label_rows,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -138,11 +147,7 @@ def _eligible(labels: NDArray[Any]) -> NDArray[np.bool_]:
 
 def _rows(points: TilePoints) -> NDArray[np.float64]:
     """``(n, 4)`` float64 rows ``x y z label`` (contiguous: fast to gather and sort)."""
-    rows = np.empty((points.n_points, 4), dtype=np.float64)
-    rows[:, :3] = points.cloud.xyz
-    if points.cloud.labels is not None:
-        rows[:, 3] = points.cloud.labels
-    return rows
+    return xyz_label_rows(points)
 
 
 def _gather(records: NDArray[np.float64], mask: NDArray[np.bool_]) -> NDArray[np.float64]:
@@ -215,6 +220,46 @@ def _match_tile(
     return matched
 
 
+@dataclass(frozen=True, slots=True)
+class TileAgreement:
+    """What one tile adds: ``matrices[c]`` and ``matched[c]`` for receiving scan ``c`` (0 A, 1 B)."""
+
+    matrices: tuple[ConfusionMatrix, ConfusionMatrix]
+    matched: tuple[int, int]
+
+
+TileMapper = Callable[
+    [Callable[[TileKey], TileAgreement | None], Sequence[TileKey]],
+    Iterable[TileAgreement | None],
+]
+"""``map_tiles(function, tiles)``: results in input order (e.g. a Dask cluster's map)."""
+
+
+def match_store_tile(
+    stores: tuple[TileStore, TileStore], tile: TileKey, *, max_distance_m: float
+) -> TileAgreement | None:
+    """Match one tile of two scans' stores (None when no point can match); a unit of work
+    that pickles (on-disk stores pickle to their paths)."""
+    core = [_rows(stores[scan].read_core(tile)) for scan in (_A, _B)]
+    halo = [_rows(stores[scan].read_halo(tile, max_distance_m)) for scan in (_A, _B)]
+    sizes = [part.shape[0] for part in (*core, *halo)]  # core A, core B, halo A, halo B
+    if not ((sizes[0] and sizes[1] + sizes[3]) or (sizes[1] and sizes[0] + sizes[2])):
+        return None
+    matrices = {_A: ConfusionMatrix(N_CLASSES), _B: ConfusionMatrix(N_CLASSES)}
+    found = _match_tile(core, halo, max_distance_m=max_distance_m, matrices=matrices)
+    return TileAgreement((matrices[_A], matrices[_B]), (found[_A], found[_B]))
+
+
+def match_folder_tile(
+    folders: tuple[str, str], tile: TileKey, *, max_distance_m: float
+) -> TileAgreement | None:
+    """:func:`match_store_tile` of two stores given by their folders: what travels to other
+    processes (two paths and a tile key). The stores are opened for the tile only, so the
+    pages of their memory maps do not pile up in a long-lived worker."""
+    stores = (TileStore(folders[0]), TileStore(folders[1]))
+    return match_store_tile(stores, tile, max_distance_m=max_distance_m)
+
+
 def compute_label_agreement(
     a: Iterable[PointCloud],
     b: Iterable[PointCloud],
@@ -225,6 +270,7 @@ def compute_label_agreement(
     spill_directory: Path | None = None,
     progress: AgreementProgress | None = None,
     exclude_before_matching: bool = False,
+    map_tiles: TileMapper | None = None,
 ) -> AgreementResult:
     """Transfer labels between two overlapping scans in both directions and score them.
 
@@ -237,6 +283,9 @@ def compute_label_agreement(
         progress: called with tiles done and total while matching.
         exclude_before_matching: remove labels 0 and 7 before the neighbour search
             instead of leaving out the pairs involving them afterwards (the paper's order).
+        map_tiles: matches the tiles elsewhere (:func:`match_folder_tile` per tile, e.g. on
+            a Dask cluster) instead of here; the stores then always go to disk, under
+            ``spill_directory``, which the workers must see. Same result.
 
     Raises:
         ShapeError: a chunk has no labels or labels above 8.
@@ -252,25 +301,38 @@ def compute_label_agreement(
     n_points = {_A: 0, _B: 0}  # points that can receive a label (not 0, not 7)
 
     def spill(chunks: Iterable[PointCloud], scan: int) -> TemporaryTileStore:
-        with TemporaryTileStore.writer(
-            grid=grid, workdir=spill_directory, buffer_points=buffer_points
-        ) as writer:
+        writer = (
+            TemporaryTileStore.writer(
+                grid=grid, workdir=spill_directory, buffer_points=buffer_points
+            )
+            if map_tiles is None
+            else TileStoreWriter(  # a store other processes can open: always on disk
+                Path(spill_directory or tempfile.gettempdir())
+                / f"semantic3d-tiles-{uuid.uuid4().hex[:12]}",
+                grid=grid,
+                buffer_points=buffer_points,
+            )
+        )
+        with writer:
             name = "A" if scan == _A else "B"
             n_points[scan] = _spill_scan(writer, chunks, name, exclude=exclude_before_matching)
             return TemporaryTileStore.adopt(writer.close(), spilled_points=writer.spilled_points)
 
     with spill(a, _A) as store_a, spill(b, _B) as store_b:
-        stores = {_A: store_a, _B: store_b}
         tiles = sorted(set(store_a.tiles) | set(store_b.tiles))
         total = len(tiles)
-        for done, tile in enumerate(tiles, start=1):
-            core = [_rows(stores[scan].read_core(tile)) for scan in (_A, _B)]
-            halo = [_rows(stores[scan].read_halo(tile, max_distance_m)) for scan in (_A, _B)]
-            sizes = [part.shape[0] for part in (*core, *halo)]  # core A, core B, halo A, halo B
-            if (sizes[0] and sizes[1] + sizes[3]) or (sizes[1] and sizes[0] + sizes[2]):
-                found = _match_tile(core, halo, max_distance_m=max_distance_m, matrices=matrices)
+        if map_tiles is None:
+            task = partial(match_store_tile, (store_a, store_b), max_distance_m=max_distance_m)
+            parts: Iterable[TileAgreement | None] = map(task, tiles)
+        else:
+            folders = (str(store_a.directory), str(store_b.directory))
+            task = partial(match_folder_tile, folders, max_distance_m=max_distance_m)
+            parts = map_tiles(task, tiles)
+        for done, part in enumerate(parts, start=1):
+            if part is not None:  # merged in tile order
                 for scan in (_A, _B):
-                    matched[scan] += found[scan]
+                    matrices[scan].merge(part.matrices[scan])
+                    matched[scan] += part.matched[scan]
             if progress is not None:
                 progress(done, total)
 

@@ -11,9 +11,11 @@ collected before anything is reported, so an invalid submission gets one
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import contextmanager
+from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -38,6 +40,18 @@ logger = logging.getLogger(__name__)
 
 DEFAULT_EVALUATION_CHUNK = 1 << 22
 """Label pairs accumulated at a time (4 Mi: two 4 MiB value buffers)."""
+
+
+@dataclass(frozen=True, slots=True)
+class ScanEvaluation:
+    """One scan of a submission, scored: its matrix, or None when its prediction has problems."""
+
+    matrix: ConfusionMatrix | None
+    problems: tuple[str, ...]
+
+
+ScanMapper = Callable[[Callable[[int], ScanEvaluation], Sequence[int]], Iterable[ScanEvaluation]]
+"""``map_scans(function, scan_indices)``: results in input order (e.g. a Dask cluster's map)."""
 
 
 class _Progress:
@@ -147,6 +161,41 @@ def _evaluate_scan(
     return None if scan_problems else matrix
 
 
+def evaluate_submitted_scan(
+    submission: Path,
+    scan_index: int,
+    *,
+    challenge: Challenge,
+    limits: SubmissionLimits = SubmissionLimits(),
+    chunk_size: int = DEFAULT_EVALUATION_CHUNK,
+) -> ScanEvaluation:
+    """Score scan ``challenge.scans[scan_index]`` of a submission (a picklable unit of work).
+
+    The submission's layout problems are left to :func:`evaluate_submission`; a scan the
+    submission lacks gives no matrix and no problem.
+    """
+    protocol = load_protocol(challenge.protocol_version)
+    scan = challenge.scans[scan_index]
+    challenge.require_ground_truth()
+    gt_path = scan.ground_truth
+    assert gt_path is not None  # require_ground_truth() checked it
+    with open_submission(submission, challenge=challenge, limits=limits) as contents:
+        entry = contents.files.get(scan.submission_name)
+        if entry is None:
+            return ScanEvaluation(None, ())
+        problems: list[str] = []
+        matrix = _evaluate_scan(
+            scan,
+            gt_path,
+            entry,
+            protocol=protocol,
+            chunk_size=chunk_size,
+            problems=problems,
+            progress=_Progress(None, 0),
+        )
+    return ScanEvaluation(matrix, tuple(problems))
+
+
 def evaluate_submission(
     submission: Path,
     *,
@@ -155,6 +204,7 @@ def evaluate_submission(
     limits: SubmissionLimits = SubmissionLimits(),
     progress: ProgressCallback | None = None,
     chunk_size: int = DEFAULT_EVALUATION_CHUNK,
+    map_scans: ScanMapper | None = None,
 ) -> EvaluationResult:
     """Validate and score a submission (zip archive or folder) against ``challenge``.
 
@@ -166,6 +216,8 @@ def evaluate_submission(
         limits: archive safety caps.
         progress: called as ``progress(done_bytes, total_bytes)`` of ground truth read.
         chunk_size: label pairs accumulated at a time.
+        map_scans: scores the scans elsewhere (:func:`evaluate_submitted_scan` per scan,
+            e.g. on a Dask cluster) instead of one after another here; same result.
 
     Raises:
         SubmissionError: the submission is invalid; ``.problems`` lists every problem.
@@ -178,6 +230,17 @@ def evaluate_submission(
     per_scan: list[ScanResult] = []
     gt_bytes = sum(s.ground_truth.stat().st_size for s in challenge.scans if s.ground_truth)
     tracker = _Progress(progress, gt_bytes)
+    if map_scans is not None:
+        return _evaluate_mapped(
+            submission,
+            challenge=challenge,
+            protocol=protocol,
+            method=method,
+            limits=limits,
+            tracker=tracker,
+            chunk_size=chunk_size,
+            map_scans=map_scans,
+        )
     with open_submission(submission, challenge=challenge, limits=limits) as contents:
         problems = contents.problems
         for scan in challenge.scans:
@@ -207,6 +270,65 @@ def evaluate_submission(
                     )
             tracker.done += gt_path.stat().st_size
             tracker.report()
+    return _result(submission, challenge, protocol, method, problems, total, per_scan)
+
+
+def _evaluate_mapped(
+    submission: Path,
+    *,
+    challenge: Challenge,
+    protocol: Protocol,
+    method: MethodInfo | None,
+    limits: SubmissionLimits,
+    tracker: _Progress,
+    chunk_size: int,
+    map_scans: ScanMapper,
+) -> EvaluationResult:
+    """:func:`evaluate_submission` with the scans scored by ``map_scans``, merged in order."""
+    total = ConfusionMatrix(protocol.n_classes)
+    per_scan: list[ScanResult] = []
+    with open_submission(submission, challenge=challenge, limits=limits) as contents:
+        problems = list(contents.problems)
+        present = [
+            index
+            for index, scan in enumerate(challenge.scans)
+            if scan.submission_name in contents.files
+        ]
+    task = partial(
+        evaluate_submitted_scan,
+        submission,
+        challenge=challenge,
+        limits=limits,
+        chunk_size=chunk_size,
+    )
+    for index, outcome in zip(present, map_scans(task, present), strict=True):
+        scan = challenge.scans[index]
+        problems.extend(outcome.problems)
+        if outcome.matrix is not None and not problems:
+            total.merge(outcome.matrix)
+            per_scan.append(
+                ScanResult(
+                    scan.name,
+                    scan.submission_name,
+                    outcome.matrix.compute(),
+                    outcome.matrix.compute_scores(),
+                )
+            )
+        if scan.ground_truth is not None:
+            tracker.done += scan.ground_truth.stat().st_size
+        tracker.report()
+    return _result(submission, challenge, protocol, method, problems, total, per_scan)
+
+
+def _result(
+    submission: Path,
+    challenge: Challenge,
+    protocol: Protocol,
+    method: MethodInfo | None,
+    problems: list[str],
+    total: ConfusionMatrix,
+    per_scan: list[ScanResult],
+) -> EvaluationResult:
     if problems:
         raise SubmissionError(problems, source=str(submission))
     scores = total.compute_scores()

@@ -10,7 +10,7 @@ import numbers
 from dataclasses import dataclass
 
 from semantic3d.core.errors import ConfigError
-from semantic3d.features.names import column_names, level_feature_names
+from semantic3d.features.names import CYLINDER_FEATURES, column_names, level_feature_names
 
 __all__ = ["MAX_LEVELS", "ConfigError", "FeatureConfig"]
 
@@ -32,6 +32,18 @@ class FeatureConfig:
             the k-NN work at full resolution).
         colour: add HSV of the mean neighbourhood colour per level.
         intensity: add the mean neighbourhood intensity per level.
+        spherical_height: the height range, height below and above over the k nearest
+            neighbours per level (``vertical_range``, ``height_below``, ``height_above``).
+        cylinders: height features of vertical cylinders per level (the paper's:
+            ``cylinder_range``, ``cylinder_below``, ``cylinder_above``, ``cylinder_points``;
+            :mod:`~semantic3d.features.cylinders`).
+        cylinder_radius_voxels: cylinder radius in voxel sizes of its level (the radius
+            doubles with the voxel size).
+        cylinder_features: which cylinder columns to keep, in
+            :data:`~semantic3d.features.names.CYLINDER_FEATURES` order. Default: only
+            ``cylinder_below`` (the height above the lowest point around), the one that
+            generalised to scans left out of training (docs/baseline_covariance.md); the
+            paper preset keeps all four.
     """
 
     base_voxel_size_m: float = 0.025
@@ -40,6 +52,10 @@ class FeatureConfig:
     per_point: bool = False
     colour: bool = False
     intensity: bool = False
+    spherical_height: bool = True
+    cylinders: bool = True
+    cylinder_radius_voxels: float = 2.0
+    cylinder_features: tuple[str, ...] = ("cylinder_below",)
 
     def __post_init__(self) -> None:
         if not 0.0 < self.base_voxel_size_m < 1e3:
@@ -51,6 +67,18 @@ class FeatureConfig:
             raise ConfigError(f"n_levels: expected 1..{MAX_LEVELS}, found {self.n_levels!r}")
         if not _is_integer(self.k_neighbours) or not 3 <= self.k_neighbours <= 256:
             raise ConfigError(f"k_neighbours: expected 3..256, found {self.k_neighbours!r}")
+        if not self.cylinder_features or tuple(
+            name for name in CYLINDER_FEATURES if name in self.cylinder_features
+        ) != tuple(self.cylinder_features):
+            raise ConfigError(
+                f"cylinder_features: expected some of {list(CYLINDER_FEATURES)} in that "
+                f"order, found {list(self.cylinder_features)}"
+            )
+        if not 0.0 < self.cylinder_radius_voxels <= 64.0:
+            raise ConfigError(
+                f"cylinder_radius_voxels: expected a radius in (0, 64] voxel sizes, "
+                f"found {self.cylinder_radius_voxels}"
+            )
 
     @property
     def voxel_sizes_m(self) -> tuple[float, ...]:
@@ -65,12 +93,27 @@ class FeatureConfig:
     @property
     def level_feature_names(self) -> tuple[str, ...]:
         """Feature names computed at every level, in column order."""
-        return level_feature_names(colour=self.colour, intensity=self.intensity)
+        return level_feature_names(
+            colour=self.colour,
+            intensity=self.intensity,
+            spherical_height=self.spherical_height,
+            cylinders=self.cylinder_features if self.cylinders else (),
+        )
 
     @property
     def feature_names(self) -> tuple[str, ...]:
         """All column names (``planarity@0.100m``), level-major."""
-        return column_names(self.voxel_sizes_m, colour=self.colour, intensity=self.intensity)
+        return column_names(
+            self.voxel_sizes_m,
+            colour=self.colour,
+            intensity=self.intensity,
+            spherical_height=self.spherical_height,
+            cylinders=self.cylinder_features if self.cylinders else (),
+        )
+
+    def cylinder_radius_m(self, level: int) -> float:
+        """Horizontal radius of the cylinders of pyramid level ``level``."""
+        return self.cylinder_radius_voxels * self.base_voxel_size_m * 2**level
 
     @property
     def n_features(self) -> int:

@@ -20,8 +20,14 @@ from semantic3d.core.errors import ShapeError
 from semantic3d.core.pointcloud import PointCloud
 from semantic3d.features.attributes import compute_attribute_features
 from semantic3d.features.config import FeatureConfig
-from semantic3d.features.covariance import N_COVARIANCE_COLUMNS, geometry_kernel
+from semantic3d.features.covariance import (
+    N_COVARIANCE_COLUMNS,
+    covariance_kernel,
+    geometry_kernel,
+)
+from semantic3d.features.cylinders import N_CYLINDER_COLUMNS, compute_cylinder_features
 from semantic3d.features.height import N_HEIGHT_COLUMNS
+from semantic3d.features.names import CYLINDER_FEATURES
 from semantic3d.features.neighbourhoods import LevelIndex
 from semantic3d.features.pyramid import PyramidLevel, VoxelPyramid, build_pyramid, grid_origin
 
@@ -89,21 +95,24 @@ def compute_level_features(
     queries: NDArray[np.float64],
     *,
     config: FeatureConfig,
+    level: int,
     out: NDArray[np.float32] | None = None,
 ) -> tuple[NDArray[np.float32], NDArray[np.float64]]:
-    """Features of ``queries`` against one level; also the k-th neighbour distance.
+    """Features of ``queries`` against one level; also how far each row looked.
 
     Args:
         index: the level's points and keys.
         attributes: ``(n_points, a)`` per-voxel attribute means of the level.
         queries: ``(m, 3)`` float64 query points relative to the grid origin.
-        config: feature settings (k, colour, intensity).
+        config: feature settings (k, height features, colour, intensity).
+        level: the level's number (0 finest), which sets the cylinder radius.
         out: optional ``(m, n_level_features)`` float32 destination (may be a column
             slice of a wider table).
 
     Returns:
-        ``(m, n_level_features)`` float32 block (``out`` when given) and ``(m,)`` k-th
-        neighbour distances.
+        ``(m, n_level_features)`` float32 block (``out`` when given) and ``(m,)`` reach:
+        the k-th neighbour distance, or the cylinder radius when larger. Every level point
+        that can change a row lies within its reach horizontally (the tiles' halo test).
     """
     queries = np.ascontiguousarray(queries, dtype=np.float64)
     width = len(config.level_feature_names)
@@ -112,13 +121,34 @@ def compute_level_features(
     if out.shape != (queries.shape[0], width):
         raise ShapeError(f"out: expected ({queries.shape[0]}, {width}), found {out.shape}")
     found = index.query(queries, k=config.k_neighbours)
-    split = N_COVARIANCE_COLUMNS + N_HEIGHT_COLUMNS
-    geometry_kernel(index.xyz, found.indices, queries, out[:, :split])
+    column = N_COVARIANCE_COLUMNS
+    if config.spherical_height:
+        column += N_HEIGHT_COLUMNS
+        geometry_kernel(index.xyz, found.indices, queries, out[:, :column])
+    else:
+        covariance_kernel(index.xyz, found.indices, queries, out[:, :column])
+    reach = found.kth_distance
+    if config.cylinders:
+        radius_m = config.cylinder_radius_m(level)
+        width = len(config.cylinder_features)
+        if width == N_CYLINDER_COLUMNS:
+            compute_cylinder_features(
+                index.xyz, queries, radius_m=radius_m, out=out[:, column : column + width]
+            )
+        else:
+            block = compute_cylinder_features(index.xyz, queries, radius_m=radius_m)
+            out[:, column : column + width] = block[:, _cylinder_columns(config)]
+        column += width
+        reach = np.maximum(reach, radius_m)
     if config.colour or config.intensity:
-        out[:, split:] = compute_attribute_features(
+        out[:, column:] = compute_attribute_features(
             attributes, found.indices, colour=config.colour, intensity=config.intensity
         )
-    return out, found.kth_distance
+    return out, reach
+
+
+def _cylinder_columns(config: FeatureConfig) -> list[int]:
+    return [CYLINDER_FEATURES.index(name) for name in config.cylinder_features]
 
 
 def compute_multiscale_features(
@@ -152,7 +182,9 @@ def compute_multiscale_features(
         for level_number, level in enumerate(pyramid.levels):
             index = LevelIndex(level.xyz, level.keys)
             columns = values[:, level_number * width : (level_number + 1) * width]
-            compute_level_features(index, level.attributes, queries, config=config, out=columns)
+            compute_level_features(
+                index, level.attributes, queries, config=config, level=level_number, out=columns
+            )
         point_row = np.arange(wanted.size, dtype=np.int64)
         return FeatureTable(config.feature_names, values, point_row)
 
@@ -169,11 +201,14 @@ def compute_multiscale_features(
             out: NDArray[np.float32],
             index: LevelIndex = index,
             level: PyramidLevel = level,
+            number: int = level_number,
         ) -> None:
             # every voxel of the level (the usual case): query the level's own array,
             # whose float32 copy the index already holds
             queries = level.xyz if needed.size == level.n_voxels else level.xyz[needed]
-            compute_level_features(index, level.attributes, queries, config=config, out=out)
+            compute_level_features(
+                index, level.attributes, queries, config=config, level=number, out=out
+            )
 
         fill_level_columns(
             values[:, level_number * width : (level_number + 1) * width], ancestor, compute

@@ -2,7 +2,8 @@
 
 Columns are always named, never positional. The order is level-major: every feature of
 the finest pyramid level, then every feature of the next level, and so on. Within a level,
-the order is :data:`GEOMETRIC_FEATURES`, then the optional colour and intensity columns.
+the order is the covariance and moment columns, the spherical height columns, the
+cylinder height columns, then the optional colour and intensity columns.
 
 >>> column_name("planarity", 0.1)
 'planarity@0.100m'
@@ -40,7 +41,16 @@ HEIGHT_FEATURES: tuple[str, ...] = ("vertical_range", "height_below", "height_ab
 """``z_max - z_min``, ``z - z_min`` and ``z_max - z`` over the neighbourhood."""
 
 GEOMETRIC_FEATURES: tuple[str, ...] = COVARIANCE_FEATURES + MOMENT_FEATURES + HEIGHT_FEATURES
-"""The 16 per-level geometric features, in column order."""
+"""The 16 per-level features of the k nearest neighbours, in column order."""
+
+CYLINDER_FEATURES: tuple[str, ...] = (
+    "cylinder_range",
+    "cylinder_below",
+    "cylinder_above",
+    "cylinder_points",
+)
+"""Height features of a vertical cylinder about the query (:mod:`~semantic3d.features.cylinders`):
+``z_max - z_min``, ``z - z_min``, ``z_max - z`` and the number of level points in it."""
 
 COLOUR_FEATURES: tuple[str, ...] = ("hue", "saturation", "value")
 """HSV of the mean neighbourhood colour (optional, off by default)."""
@@ -51,9 +61,19 @@ INTENSITY_FEATURES: tuple[str, ...] = ("intensity",)
 _SEPARATOR = "@"
 
 
-def level_feature_names(*, colour: bool = False, intensity: bool = False) -> tuple[str, ...]:
-    """The per-level feature names, in column order."""
-    names = GEOMETRIC_FEATURES
+def level_feature_names(
+    *,
+    colour: bool = False,
+    intensity: bool = False,
+    spherical_height: bool = True,
+    cylinders: Sequence[str] = (),
+) -> tuple[str, ...]:
+    """The per-level feature names, in column order (``cylinders``: the cylinder columns
+    kept, a subsequence of :data:`CYLINDER_FEATURES`)."""
+    names = COVARIANCE_FEATURES + MOMENT_FEATURES
+    if spherical_height:
+        names += HEIGHT_FEATURES
+    names += tuple(cylinders)
     if colour:
         names += COLOUR_FEATURES
     if intensity:
@@ -78,8 +98,15 @@ def parse_column_name(name: str) -> tuple[str, float]:
 
 
 def column_names(
-    voxel_sizes_m: Sequence[float], *, colour: bool = False, intensity: bool = False
+    voxel_sizes_m: Sequence[float],
+    *,
+    colour: bool = False,
+    intensity: bool = False,
+    spherical_height: bool = True,
+    cylinders: Sequence[str] = (),
 ) -> tuple[str, ...]:
     """All column names for the pyramid levels of ``voxel_sizes_m`` (level-major order)."""
-    per_level = level_feature_names(colour=colour, intensity=intensity)
+    per_level = level_feature_names(
+        colour=colour, intensity=intensity, spherical_height=spherical_height, cylinders=cylinders
+    )
     return tuple(column_name(f, size) for size in voxel_sizes_m for f in per_level)

@@ -8,8 +8,9 @@ level lies in exactly one tile and each tile's pyramid holds exactly the whole s
 voxels. At level ``l`` a tile's queries look for neighbours among the level-``l`` points
 of the tile plus a *halo* gathered from its neighbours. The halo is per level (fine levels
 need centimetres, coarse ones metres) and adaptive: a query is accepted only when its k-th
-neighbour is closer than the halo's edge (so no point outside could be nearer); the others
-are asked again in a box holding the ball of their k-th distance. The first halo of a
+neighbour (and its cylinder's radius) is closer than the halo's edge (so no point outside
+could change its row); the others are asked again in a box holding the ball of their
+k-th distance. The first halo of a
 level is estimated once, from the densest tile, so every tile is computed the same way
 whatever the order tiles are visited in. In voxel mode the coarsest levels, which hold
 few voxels, are described once over the whole scan instead. With the canonical neighbour
@@ -68,6 +69,9 @@ _SLACK_M = 1e-6
 
 _HALO_SAMPLE = 2048
 """Queries of the densest tile used to estimate a level's first halo."""
+
+_SHARED_FILE = "shared.pickle"
+"""What :meth:`TiledScan.share` writes in the scratch folder."""
 
 Tile = TileKey
 
@@ -287,17 +291,65 @@ class TiledScan:
         """
         wanted = None if select is None else np.unique(np.asarray(select, dtype=np.int64))
         for tile in self.tiles:
-            points = self._load_points(tile)
-            keep = (
-                np.ones(points.n_points, bool)
-                if wanted is None
-                else np.isin(points.indices, wanted, assume_unique=True)
-            )
-            if not keep.any():
-                continue
-            labels = points.cloud.labels[keep] if points.cloud.labels is not None else None
-            table = self._tile_table(tile, points.cloud.xyz[keep], np.flatnonzero(keep))
-            yield TileFeatures(tile, points.indices[keep], table, labels)
+            features = self.tile_features(tile, select=wanted)
+            if features is not None:
+                yield features
+
+    def tile_features(
+        self, tile: Tile, *, select: NDArray[np.int64] | None = None
+    ) -> TileFeatures | None:
+        """Feature rows of one tile (its points ascending), None when none is selected.
+
+        The unit of work of :meth:`iter_features`, which other processes can do as well:
+        a ``TiledScan`` pickles to its scratch folder's path and a few numbers (no cache),
+        and a copy opened where that folder is visible gives the same rows.
+
+        Args:
+            tile: one of :attr:`tiles`.
+            select: sorted unique global indices of the points to describe (default all).
+        """
+        points = self._load_points(tile)
+        keep = (
+            np.ones(points.n_points, bool)
+            if select is None
+            else np.isin(points.indices, select, assume_unique=True)
+        )
+        if not keep.any():
+            return None
+        labels = points.cloud.labels[keep] if points.cloud.labels is not None else None
+        table = self._tile_table(tile, points.cloud.xyz[keep], np.flatnonzero(keep))
+        return TileFeatures(tile, points.indices[keep], table, labels)
+
+    def share(self) -> None:
+        """Compute what every tile shares once and save it in the scratch folder.
+
+        The coarse levels described whole and each level's first halo are written to the
+        scratch folder; copies of this scan unpickled in other processes read them there
+        instead of computing them again (the same values: the same rows).
+        """
+        for number in range(self.config.n_levels):
+            if not self.config.per_point:
+                self._whole_level(number)
+            self._first_halo_m(number)
+        partial = self.workdir / f".{_SHARED_FILE}.partial"
+        with partial.open("wb") as stream:
+            pickle.dump((self._whole, self._first_halo), stream, protocol=pickle.HIGHEST_PROTOCOL)
+        partial.replace(self.workdir / _SHARED_FILE)
+
+    def __getstate__(self) -> dict[str, object]:
+        """What travels to another process: paths and numbers, no cached pyramid or rows."""
+        state = dict(self.__dict__)
+        state["_cache"] = OrderedDict()
+        state["_cache_bytes"] = 0
+        state["_whole"] = {}
+        return state
+
+    def __setstate__(self, state: dict[str, object]) -> None:
+        self.__dict__.update(state)
+        shared = self.workdir / _SHARED_FILE
+        if shared.is_file():  # written by share() in the process that made the scan
+            with shared.open("rb") as stream:
+                self._whole, self._first_halo = pickle.load(stream)
 
     def _tile_table(
         self, tile: Tile, xyz: NDArray[np.float64], local: NDArray[np.int64]
@@ -353,7 +405,7 @@ class TiledScan:
             order = np.argsort(keys)
             xyz, keys, attributes = xyz[order], keys[order], attributes[order]
             rows, _ = compute_level_features(
-                LevelIndex(xyz, keys), attributes, xyz, config=self.config
+                LevelIndex(xyz, keys), attributes, xyz, config=self.config, level=number
             )
             result = (keys, rows)
         self._whole[number] = result
@@ -379,7 +431,11 @@ class TiledScan:
             step = max(1, level.n_voxels // _HALO_SAMPLE)
             sample = level.xyz[::step]
             _, kth = compute_level_features(
-                LevelIndex(level.xyz, level.keys), level.attributes, sample, config=config
+                LevelIndex(level.xyz, level.keys),
+                level.attributes,
+                sample,
+                config=config,
+                level=number,
             )
             halo = max(floor, 1.1 * float(np.quantile(kth, 0.95)))
         self._first_halo[number] = halo
@@ -422,7 +478,7 @@ class TiledScan:
             xyz, keys, attributes = self._gather(number, box)
             asked = queries[pending]
             block, kth = compute_level_features(
-                LevelIndex(xyz, keys), attributes, asked, config=config
+                LevelIndex(xyz, keys), attributes, asked, config=config, level=number
             )
             enough = xyz.shape[0] >= config.k_neighbours
             if infinite.all():

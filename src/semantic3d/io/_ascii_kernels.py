@@ -28,6 +28,9 @@ instructions (~75 per coordinate, ~35 per integer, the line checks), ~5 cycles a
 this machine's cores, while the page cache delivers several GB/s. Getting within a few
 times of ``cat`` would take SIMD structural indexing (classify 32 bytes per instruction,
 convert tokens with byte shuffles), which numba does not express.
+
+Small files do not come here: :mod:`semantic3d.io._point_text` parses them in Python with
+the same grammar and results, since loading numba costs more than parsing them.
 """
 
 from __future__ import annotations
@@ -40,14 +43,15 @@ from llvmlite import ir
 from numba.core import cgutils, types
 from numba.extending import intrinsic
 
-N_COLUMNS = 7
-OK = 0
-BAD_NUMBER = 1  # a token that is not a decimal number
-COLUMN_COUNT = 2  # fewer or more than 7 columns
-NOT_INTEGER = 3  # intensity/r/g/b with a fraction
-OUT_OF_RANGE = 4  # rgb outside 0..255, intensity outside int32
-NON_FINITE = 5  # a number beyond float64 (``1e400``)
-SLOW_FULL = 6  # internal: the deferred-token list of a segment is full
+from semantic3d.io._point_text import (  # problem codes: one definition for both parsers
+    BAD_NUMBER,
+    COLUMN_COUNT,
+    N_COLUMNS,
+    NOT_INTEGER,
+    OK,
+    OUT_OF_RANGE,
+    SLOW_FULL,
+)
 
 FAST_MARGIN = 160
 """The SWAR path reads up to this many bytes past a line start (7 tokens of at most 19

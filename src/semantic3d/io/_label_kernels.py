@@ -15,6 +15,10 @@ Two parsers, one format:
   :class:`semantic3d.io.labelstream.LabelStream` drives it over any binary stream (files,
   zip members), and :mod:`semantic3d.io.labels` falls back to it for blocks the fast
   path rejects.
+
+Small texts do not come here: :mod:`semantic3d.io._label_parsing` parses them with numpy
+(same results) and imports this module only for long ones, since loading numba costs
+more than parsing a small file.
 """
 
 from __future__ import annotations
@@ -22,15 +26,18 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-# Slots of the int64 ``state`` array of parse_lines: lines parsed; syntax problems, the
-# line of the first; out-of-range values, the line and value of the first; bytes of the
-# first bad line's text kept in ``text``.
-LINES, N_SYNTAX, SYNTAX_LINE, N_RANGE, RANGE_LINE, RANGE_VALUE, TEXT_LEN = range(7)
-STATE_SIZE = 7
-TEXT_BYTES = 24
-"""Bytes of the first bad line kept for messages."""
-VALUE_CAP = 10**15
-"""Digits past this are not accumulated (no int64 overflow); larger values stay >= it."""
+from semantic3d.io._label_grammar import (  # one definition for both parsers
+    LINES,
+    N_RANGE,
+    N_SYNTAX,
+    RANGE_LINE,
+    RANGE_VALUE,
+    SYNTAX_LINE,
+    TEXT_BYTES,
+    TEXT_LEN,
+    VALUE_CAP,
+)
+
 _WINDOW = 4096  # lines checked at once by the branch-free fast path of parse_lines
 _MAX_BACKOFF = 1 << 20  # most lines parsed one by one before trying a window again
 

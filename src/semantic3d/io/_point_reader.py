@@ -16,7 +16,6 @@ found.
 from __future__ import annotations
 
 import mmap
-import re
 from collections.abc import Callable, Generator, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import suppress
@@ -26,14 +25,15 @@ from typing import Any, TypeVar
 import numba
 import numpy as np
 
-from semantic3d.core.errors import DataFormatError
 from semantic3d.core.pointcloud import PointCloud
 from semantic3d.io import _ascii_kernels as kernels
+from semantic3d.io import _point_text as codes
+from semantic3d.io._point_text import MAX_LINE_BYTES
+from semantic3d.io._point_text import line_at as _line_at
+from semantic3d.io._point_text import long_line_error as _long_line_error
+from semantic3d.io._point_text import point_error as _point_error
 from semantic3d.io.chunks import iter_line_blocks
 
-COLUMNS = ("x", "y", "z", "intensity", "r", "g", "b")
-MAX_LINE_BYTES = 1 << 20
-"""A longer line means the file is binary or not line based."""
 MIN_LINE_BYTES = 14
 """``0 0 0 0 0 0 0\\n``: bounds the number of rows a byte range can hold."""
 MIN_BATCH_ROWS = 1 << 16
@@ -44,7 +44,6 @@ _RELEASE_BYTES = 16 << 20
 T = TypeVar("T")
 _Region = tuple[np.ndarray, int, int, int]
 """A buffer, the range of whole lines to parse in it, and how far it may be read."""
-_NUMBER = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?\Z", re.ASCII)
 
 
 def iter_point_batches(path: Path, chunk_size: int, window_bytes: int) -> Iterator[PointCloud]:
@@ -169,12 +168,12 @@ class _Reader:
         while True:
             if n_slow:
                 self._convert(buf, slow[:n_slow], batch)
-            if status == kernels.SLOW_FULL:
+            if status == codes.SLOW_FULL:
                 status, pos, row, n_slow = kernels.parse_segment(
                     buf, readable, pos, end, row, batch.xyz, batch.intensity, batch.rgb, slow
                 )
                 continue
-            if status != kernels.OK:
+            if status != codes.OK:
                 raise _point_error(self.path, _line_at(buf, pos), status, self._line(row))
             return
 
@@ -187,15 +186,15 @@ class _Reader:
             start, stop = int(slow[i, kernels.SLOW_START]), int(slow[i, kernels.SLOW_STOP])
             values[i] = float(bytes(buf[start:stop]))
         rows, columns = slow[:, kernels.SLOW_ROW], slow[:, kernels.SLOW_COLUMN]
-        problem = np.where(np.isfinite(values), kernels.OK, kernels.NON_FINITE)
+        problem = np.where(np.isfinite(values), codes.OK, codes.NON_FINITE)
         integer = columns >= 3
         with np.errstate(invalid="ignore"):
-            fraction = integer & (problem == kernels.OK) & (values != np.floor(values))
-            problem[fraction] = kernels.NOT_INTEGER
+            fraction = integer & (problem == codes.OK) & (values != np.floor(values))
+            problem[fraction] = codes.NOT_INTEGER
             low = np.where(columns == 3, -2147483648.0, 0.0)
             high = np.where(columns == 3, 2147483647.0, 255.0)
-            outside = integer & (problem == kernels.OK) & ((values < low) | (values > high))
-        problem[outside] = kernels.OUT_OF_RANGE
+            outside = integer & (problem == codes.OK) & ((values < low) | (values > high))
+        problem[outside] = codes.OUT_OF_RANGE
         bad = np.flatnonzero(problem)
         if bad.size:
             first = int(bad[np.argmin(rows[bad])])
@@ -293,39 +292,3 @@ def _block_regions(path: Path, block_bytes: int) -> Generator[_Region, None, Non
         view = block.view()
         view.flags.writeable = False
         yield view, 0, view.size, view.size
-
-
-def _line_at(buf: np.ndarray, pos: int, limit: int = 200) -> str:
-    """The text of the line holding ``pos`` (at most ``limit`` bytes), for messages."""
-    start = pos
-    while start > 0 and buf[start - 1] != 10 and pos - start < MAX_LINE_BYTES:
-        start -= 1
-    stop = start
-    while stop < buf.size and buf[stop] != 10 and stop - start < limit:
-        stop += 1
-    return bytes(buf[start:stop]).decode("utf-8", errors="replace").rstrip("\r")
-
-
-def _long_line_error(path: Path) -> DataFormatError:
-    return DataFormatError(
-        f"expected text lines, found a line longer than {MAX_LINE_BYTES} bytes (binary data?)",
-        path=str(path),
-    )
-
-
-def _point_error(path: Path, text: str, status: int, line: int) -> DataFormatError:
-    tokens = text.split()
-    if status == kernels.COLUMN_COUNT:
-        detail = f"expected {len(COLUMNS)} columns ({' '.join(COLUMNS)}), found {len(tokens)}"
-    elif status == kernels.BAD_NUMBER:
-        bad = next((t for t in tokens if not _NUMBER.match(t)), text)
-        detail = f"expected numbers in every column, found {bad!r}"
-    elif status == kernels.NON_FINITE:
-        bad = next((t for t in tokens if not np.isfinite(float(t))), text)
-        detail = f"expected finite numbers (within float64) in every column, found {bad!r}"
-    elif status == kernels.NOT_INTEGER:
-        bad = next((t for t in tokens[3:] if float(t) % 1), "")
-        detail = f"expected integer intensity and colour values, found {bad!r}"
-    else:
-        detail = f"expected r g b in 0..255 and an int32 intensity, found {' '.join(tokens[3:7])!r}"
-    return DataFormatError(detail, path=str(path), line=line)

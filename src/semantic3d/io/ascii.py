@@ -7,12 +7,16 @@ intensities (``-1515``). Rejected with file, line, expected and found: a line wi
 exactly 7 columns, a token that is not a number, a fractional intensity or colour,
 colours outside 0..255.
 
+Files up to 256 KiB are parsed in Python (:mod:`semantic3d.io._point_text`), larger ones
+by compiled kernels; both accept and reject the same text with the same messages.
+
 Labels live beside the points in a ``.labels`` file (:mod:`semantic3d.io.labels`); pass
 ``labels_path`` to read or write them together, chunk for chunk.
 """
 
 from __future__ import annotations
 
+import stat
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import BinaryIO
@@ -21,6 +25,7 @@ import numpy as np
 
 from semantic3d.core.errors import DataFormatError
 from semantic3d.core.pointcloud import PointCloud
+from semantic3d.io._point_text import COLUMNS, SMALL_FILE_BYTES, iter_small_points
 from semantic3d.io.chunks import DEFAULT_CHUNK_SIZE, validate_chunk_size
 from semantic3d.io.labels import attach_labels, format_labels_bytes
 from semantic3d.io.staging import StagedPath, StagedWriter, write_chunks
@@ -34,7 +39,6 @@ __all__ = [
     "write_ascii_points",
 ]
 
-COLUMNS = ("x", "y", "z", "intensity", "r", "g", "b")
 DEFAULT_WINDOW_BYTES = 8 << 20
 """Bytes of text parsed per call of the compiled kernel (split over all cores)."""
 MAX_DECIMALS = 9
@@ -56,14 +60,26 @@ def iter_ascii_points(
     knob; results do not depend on it). Memory stays bounded by the chunks and one window
     whatever the file size.
     """
-    from semantic3d.io._point_reader import iter_point_batches
-
     chunk_size = validate_chunk_size(chunk_size)
     path = Path(path)
-    clouds = iter_point_batches(path, chunk_size, block_bytes)
+    clouds = _iter_ascii_chunks(path, chunk_size, block_bytes)
     if labels_path is None:
         return clouds
     return attach_labels(path, clouds, Path(labels_path), chunk_size=chunk_size)
+
+
+def _iter_ascii_chunks(path: Path, chunk_size: int, block_bytes: int) -> Iterator[PointCloud]:
+    """Small regular files through the Python parser, the rest through the kernels."""
+    status = path.stat()
+    if stat.S_ISREG(status.st_mode) and status.st_size <= SMALL_FILE_BYTES:
+        with path.open("rb") as stream:
+            data = stream.read(SMALL_FILE_BYTES + 1)
+        if len(data) <= SMALL_FILE_BYTES:  # else it grew meanwhile
+            yield from iter_small_points(path, data, chunk_size)
+            return
+    from semantic3d.io._point_reader import iter_point_batches
+
+    yield from iter_point_batches(path, chunk_size, block_bytes)
 
 
 def read_ascii_points(path: str | Path, *, labels_path: str | Path | None = None) -> PointCloud:

@@ -4,7 +4,8 @@ Reading streams the file in blocks of whole lines. The benchmark's files hold on
 per line (``0``..``8``); those take a compiled fast path over all cores that validates
 every byte, and any other shape (CRLF line ends, blanks, several digits) falls back for
 that block to the checking parser :class:`~semantic3d.io.labelstream.LabelStream` runs
-(one parser for both: ``_label_kernels.parse_lines``). Values above 255 are rejected:
+(one parser for both: ``_label_parsing.parse_lines``; small files are parsed with numpy,
+long ones by compiled kernels, with the same results). Values above 255 are rejected:
 labels are ``uint8``. To read a stream that is not a path (a zip member), or to collect
 every bad line rather than stop at the first, use ``LabelStream``.
 """
@@ -19,7 +20,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from semantic3d.core.errors import DataFormatError
 from semantic3d.core.pointcloud import PointCloud
-from semantic3d.io import _label_kernels as kernels
+from semantic3d.io import _label_grammar as grammar
+from semantic3d.io import _label_parsing as parsing
 from semantic3d.io.chunks import (
     DEFAULT_BLOCK_BYTES,
     DEFAULT_CHUNK_SIZE,
@@ -103,6 +105,8 @@ def format_labels_bytes(labels: NDArray[np.uint8]) -> memoryview:
         text[0::2] = labels + 48
         text[1::2] = 10
         return text.data
+    from semantic3d.io import _label_kernels as kernels
+
     text = np.empty(4 * labels.size, np.uint8)
     used = kernels.format_labels(np.ascontiguousarray(labels), text)
     return text[:used].data
@@ -180,18 +184,18 @@ def _parse_block(block: NDArray[np.uint8]) -> NDArray[np.uint8] | tuple[int, str
     """
     if block.size % 2 == 0:
         fast = np.empty(block.size // 2, np.uint8)
-        if kernels.parse_single_digit(block, fast) == 0:
+        if parsing.parse_single_digit(block, fast) == 0:
             return fast
     n_lines = int(np.count_nonzero(block == 10))  # blocks end with a newline
     out = np.empty(n_lines, np.uint8)
-    state = np.zeros(kernels.STATE_SIZE, np.int64)
-    text = np.zeros(kernels.TEXT_BYTES, np.uint8)
-    kernels.parse_lines(
+    state = np.zeros(grammar.STATE_SIZE, np.int64)
+    text = np.zeros(grammar.TEXT_BYTES, np.uint8)
+    parsing.parse_lines(
         block, 0, block.size, True, out, 0, n_lines, 0, MAX_LABEL_VALUE, state, text
     )
     problems = [
-        (int(state[kernels.SYNTAX_LINE]), True) if state[kernels.N_SYNTAX] else None,
-        (int(state[kernels.RANGE_LINE]), False) if state[kernels.N_RANGE] else None,
+        (int(state[grammar.SYNTAX_LINE]), True) if state[grammar.N_SYNTAX] else None,
+        (int(state[grammar.RANGE_LINE]), False) if state[grammar.N_RANGE] else None,
     ]
     found = [problem for problem in problems if problem is not None]
     if not found:

@@ -4,8 +4,9 @@ Where :func:`semantic3d.io.labels.iter_labels` reads a path and stops at the fir
 line, ``LabelStream`` reads any binary stream (benchmark submissions arrive as zip members
 that must be streamed, never extracted) and collects *every* problem of a file (how many
 bad lines, the first one of each kind) in one pass, as submission validation must. Both
-run the same compiled parser (:func:`semantic3d.io._label_kernels.parse_lines`); this is
-the hot path of evaluation (two files parsed per scan, ~750 M labels/s each here).
+run the same parser (:func:`semantic3d.io._label_parsing.parse_lines`: numpy for small
+texts, compiled kernels for long ones); this is the hot path of evaluation (two files
+parsed per scan, ~750 M labels/s each here).
 
 Format accepted: one integer a line, ``\\n`` or ``\\r\\n`` line ends, spaces or tabs
 around the value tolerated, the last line with or without a line end. An empty line, a
@@ -19,8 +20,8 @@ from typing import Any, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from semantic3d.io import _label_kernels as kernels
-from semantic3d.io._label_kernels import (
+from semantic3d.io import _label_parsing as parsing
+from semantic3d.io._label_grammar import (
     LINES,
     N_RANGE,
     N_SYNTAX,
@@ -152,7 +153,7 @@ class LabelStream:
         while filled < n_values:
             if self._skipping:
                 self._skip_overlong_line()
-            self._pos, filled = kernels.parse_lines(
+            self._pos, filled = parsing.parse_lines(
                 self._buf,
                 self._pos,
                 self._end,

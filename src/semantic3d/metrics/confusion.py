@@ -14,7 +14,6 @@ The convention (written once, in ``docs/evaluation.md``):
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -22,26 +21,24 @@ from semantic3d.core.classes import N_CLASSES
 from semantic3d.core.errors import DataFormatError, ShapeError
 from semantic3d.metrics.scores import Scores, compute_scores
 
-_LANES = 4
+_LANES = 4  # counter lanes of the compiled kernel (metrics._confusion_kernel.LANES)
+_SMALL_UPDATE = 1 << 16
+"""Updates up to this many pairs are counted with numpy (same counts as the kernel)."""
 
 
-@numba.njit(cache=True, nogil=True)
 def _accumulate(
     y_true: NDArray[np.uint8], y_pred: NDArray[np.uint8], counts: NDArray[np.int64]
-) -> None:  # pragma: no cover - compiled
-    # Hot path, hand-written: sklearn's confusion_matrix runs at ~40 M pairs/s, np.bincount
-    # on t * (n + 1) + p at ~300 M/s (it widens to intp first). Labels come in long runs of
-    # one class, so a single counter array stalls on store-to-load dependencies; four
-    # interleaved lanes (summed in compute) let consecutive equal pairs hit different cells.
-    n = y_true.shape[0]
-    m = n - n % _LANES
-    for i in range(0, m, _LANES):
-        counts[0, y_true[i], y_pred[i]] += 1
-        counts[1, y_true[i + 1], y_pred[i + 1]] += 1
-        counts[2, y_true[i + 2], y_pred[i + 2]] += 1
-        counts[3, y_true[i + 3], y_pred[i + 3]] += 1
-    for i in range(m, n):
-        counts[0, y_true[i], y_pred[i]] += 1
+) -> None:
+    """Add the pairs to ``counts`` (lanes, true value, predicted value)."""
+    if y_true.shape[0] <= _SMALL_UPDATE:
+        # Loading numba costs ~1 CPU-second, more than counting a small update with numpy.
+        size = counts.shape[1]
+        pairs = y_true.astype(np.intp) * size + y_pred
+        counts[0] += np.bincount(pairs, minlength=size * size).reshape(size, size)
+        return
+    from semantic3d.metrics._confusion_kernel import accumulate
+
+    accumulate(y_true, y_pred, counts)
 
 
 def _as_label_values(values: ArrayLike, *, name: str, n_classes: int) -> NDArray[np.uint8]:

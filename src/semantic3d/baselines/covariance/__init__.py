@@ -21,7 +21,7 @@ if TYPE_CHECKING:
         load_config,
     )
     from semantic3d.baselines.covariance.estimator import CovarianceClassifier
-    from semantic3d.baselines.covariance.model import CovarianceModel
+    from semantic3d.baselines.covariance.model import CovarianceModel, GridSearchResult
     from semantic3d.baselines.covariance.persistence import (
         ModelFileError,
         load_model,
@@ -38,7 +38,6 @@ if TYPE_CHECKING:
         predict_scans,
     )
     from semantic3d.baselines.covariance.training import (
-        GridSearchResult,
         LabelledScan,
         TrainingDataError,
         TrainingSet,
@@ -92,7 +91,7 @@ __getattr__, __dir__ = lazy_exports(
         "CovarianceModel": "semantic3d.baselines.covariance.model",
         "ForestConfig": "semantic3d.baselines.covariance.config",
         "GridSearchConfig": "semantic3d.baselines.covariance.config",
-        "GridSearchResult": "semantic3d.baselines.covariance.training",
+        "GridSearchResult": "semantic3d.baselines.covariance.model",
         "HardwareInfo": "semantic3d.baselines.covariance.predict",
         "LabelledScan": "semantic3d.baselines.covariance.training",
         "ModelFileError": "semantic3d.baselines.covariance.persistence",

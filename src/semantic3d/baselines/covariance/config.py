@@ -2,9 +2,13 @@
 
 Read by :mod:`semantic3d.core.config`: every section and key is optional, unknown sections
 or keys are rejected with the file, section and key named, types are checked strictly.
-TOML has no null: ``max_depth = "none"`` grows trees fully.
+TOML has no null: ``max_depth = "none"`` grows trees fully. A top-level ``preset`` picks
+the values of every key the file leaves out: ``"default"`` (the dataclass defaults) or
+``"paper"`` (Hackel et al. 2016 as published: :func:`preset_config`).
 
 .. code-block:: toml
+
+    preset = "default"
 
     [features]
     base_voxel_size_m = 0.025
@@ -30,6 +34,7 @@ TOML has no null: ``max_depth = "none"`` grows trees fully.
 from __future__ import annotations
 
 import numbers
+import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, cast
@@ -38,6 +43,7 @@ import semantic3d.core.config as config_file
 from semantic3d.core.classes import LABEL_VALUES
 from semantic3d.core.errors import ConfigError
 from semantic3d.features.config import FeatureConfig
+from semantic3d.features.names import CYLINDER_FEATURES
 from semantic3d.features.tiling import DEFAULT_TILE_SIZE_M
 
 __all__ = [
@@ -50,7 +56,11 @@ __all__ = [
     "config_from_dict",
     "config_to_dict",
     "load_config",
+    "preset_config",
 ]
+
+PRESETS = ("default", "paper")
+"""Names a configuration's ``preset`` may take."""
 
 _MAX_FEATURES_NAMES = ("sqrt", "log2")
 
@@ -63,9 +73,9 @@ or None (``"none"`` in a file) for all features."""
 class ForestConfig:
     """Random-forest hyper-parameters (see ``CovarianceClassifier``).
 
-    Defaults: best mean IoU over all points of held-out Oakland scans (0.581 at depth 20
-    vs 0.569 at 15 and 0.547 at 10, docs/baseline_covariance.md). The grid search scores
-    the class-balanced sample instead and prefers depth 10 there.
+    Defaults: best mean IoU over all points of 4 held-out Oakland scans (depth 20 vs 15
+    and 10, docs/baseline_covariance.md). The grid search scores the class-balanced
+    sample instead and prefers depth 10 there; ``train --grid-search`` fits its choice.
     """
 
     n_estimators: int = 50
@@ -132,8 +142,17 @@ class PredictionConfig:
 
 @dataclass(frozen=True, slots=True)
 class GridSearchConfig:
-    """Grid of forest hyper-parameters searched with cross-validation grouped by scan."""
+    """Grid of forest hyper-parameters searched with cross-validation grouped by scan.
 
+    Attributes:
+        select_forest: ``train`` runs the grid search first and fits the best parameters
+            (the paper's five-fold cross-validation; ``train --grid-search`` sets it);
+            they replace ``[forest]``'s and are recorded in the model file.
+        n_splits: folds, grouped by scan (fewer when there are fewer training scans).
+        scoring: scikit-learn scorer of the held-out folds' sample.
+    """
+
+    select_forest: bool = False
     n_estimators: tuple[int, ...] = (25, 50, 100)
     max_depth: tuple[int | None, ...] = (6, 10, 20, None)
     min_samples_leaf: tuple[int, ...] = (1,)
@@ -169,23 +188,88 @@ class GridSearchConfig:
 
 @dataclass(frozen=True, slots=True)
 class CovarianceConfig:
-    """The whole baseline configuration."""
+    """The whole baseline configuration.
 
+    Attributes:
+        preset: the preset the values not given in a file came from (``"default"`` or
+            ``"paper"``, see :func:`preset_config`); informative once built.
+    """
+
+    preset: str = "default"
     features: FeatureConfig = field(default_factory=FeatureConfig)
     forest: ForestConfig = field(default_factory=ForestConfig)
     sampling: SamplingConfig = field(default_factory=SamplingConfig)
     prediction: PredictionConfig = field(default_factory=PredictionConfig)
     grid_search: GridSearchConfig = field(default_factory=GridSearchConfig)
 
+    def __post_init__(self) -> None:
+        if self.preset not in PRESETS:
+            raise ConfigError(
+                f"preset: expected one of {', '.join(PRESETS)}, found {self.preset!r}"
+            )
+
+
+def preset_config(name: str) -> CovarianceConfig:
+    """The configuration of a preset.
+
+    - ``"default"``: the dataclass defaults, the configuration that cross-validated best
+      on scans left out of training (docs/baseline_covariance.md);
+    - ``"paper"``: Hackel et al. (2016) as published: covariance and moment features of
+      the k nearest neighbours, height features of vertical cylinders only, the forest
+      chosen by a five-fold grid search grouped by scan.
+    """
+    if name == "default":
+        return CovarianceConfig()
+    if name == "paper":
+        return CovarianceConfig(
+            preset="paper",
+            features=FeatureConfig(
+                cylinders=True, spherical_height=False, cylinder_features=CYLINDER_FEATURES
+            ),
+            grid_search=GridSearchConfig(select_forest=True),
+        )
+    raise ConfigError(f"preset: expected one of {', '.join(PRESETS)}, found {name!r}")
+
 
 def load_config(path: str | Path) -> CovarianceConfig:
     """Read a TOML configuration; raises :class:`ConfigError` naming the file and key."""
-    return config_file.read_config(path, CovarianceConfig)
+    path = Path(path)
+    try:
+        with path.open("rb") as stream:
+            preset = tomllib.load(stream).get("preset")
+    except (OSError, tomllib.TOMLDecodeError):
+        preset = None  # read_config reports it
+    if not isinstance(preset, str) or preset == "default":
+        return config_file.read_config(path, CovarianceConfig)
+    with path.open("rb") as stream:
+        return config_from_dict(tomllib.load(stream), source=str(path))
 
 
 def config_from_dict(data: dict[str, Any], *, source: str = "config") -> CovarianceConfig:
-    """Build a configuration from nested dicts (TOML / JSON shape); unknown keys rejected."""
+    """Build a configuration from nested dicts (TOML / JSON shape); unknown keys rejected.
+
+    A ``preset`` key other than ``"default"`` takes every value not in ``data`` from
+    :func:`preset_config`.
+    """
+    preset = data.get("preset")
+    if isinstance(preset, str) and preset != "default":
+        try:
+            base = config_to_dict(preset_config(preset))
+        except ConfigError as exc:
+            raise ConfigError(f"{source}: {exc}") from None
+        data = _merged(base, data)
     return config_file.config_from_dict(data, CovarianceConfig, source=source)
+
+
+def _merged(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
+    """``override`` on top of ``base``, table by table."""
+    merged = dict(base)
+    for key, value in override.items():
+        if isinstance(value, dict) and isinstance(base.get(key), dict):
+            merged[key] = _merged(base[key], value)
+        else:
+            merged[key] = value
+    return merged
 
 
 def config_to_dict(config: CovarianceConfig) -> dict[str, dict[str, Any]]:

@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -14,6 +15,50 @@ from semantic3d.baselines.covariance.config import CovarianceConfig
 from semantic3d.baselines.covariance.estimator import CovarianceClassifier
 from semantic3d.core.errors import ShapeError
 from semantic3d.core.pointcloud import PointCloud
+
+
+@dataclass(frozen=True, slots=True)
+class GridSearchResult:
+    """Cross-validated scores of every grid point (``GridSearchCV.cv_results_`` essentials).
+
+    Attributes:
+        params: the parameter sets, in grid order.
+        mean_scores: mean validation score of each set.
+        std_scores: standard deviation across folds.
+        fit_time_s: mean fit time of each set.
+        best_params: the best set.
+        best_score: its mean score.
+        scoring: the scikit-learn scorer name.
+        n_splits: folds (grouped by scan).
+    """
+
+    params: tuple[dict[str, Any], ...]
+    mean_scores: NDArray[np.float64]
+    std_scores: NDArray[np.float64]
+    fit_time_s: NDArray[np.float64]
+    best_params: dict[str, Any]
+    best_score: float
+    scoring: str
+    n_splits: int
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready summary (NaN scores as None)."""
+        return {
+            "scoring": self.scoring,
+            "n_splits": self.n_splits,
+            "best_params": self.best_params,
+            "best_score": _finite(self.best_score),
+            "results": [
+                {**params, "mean": _finite(mean), "std": _finite(std)}
+                for params, mean, std in zip(
+                    self.params, self.mean_scores, self.std_scores, strict=True
+                )
+            ],
+        }
+
+
+def _finite(value: float) -> float | None:
+    return float(value) if np.isfinite(value) else None
 
 
 @dataclass(frozen=True, slots=True)
@@ -29,6 +74,8 @@ class CovarianceModel:
         seed: seed of sampling and forest.
         package_version: semantic3d version that trained it.
         training_time_s: wall time of feature computation plus fitting.
+        grid_search: the cross-validation that chose the forest's parameters, when
+            training ran one (``config.forest`` then holds the chosen ones).
     """
 
     classifier: CovarianceClassifier
@@ -39,6 +86,7 @@ class CovarianceModel:
     seed: int
     package_version: str
     training_time_s: float
+    grid_search: GridSearchResult | None = None
 
     @property
     def chunk_size(self) -> int:

@@ -62,6 +62,7 @@ def save_model(model: CovarianceModel, path: str | Path) -> Path:
         "label_values": list(model.label_values),
         "seed": model.seed,
         "training_time_s": model.training_time_s,
+        "grid_search": None if model.grid_search is None else model.grid_search.to_dict(),
     }
     return write_model_file(
         path,

@@ -10,6 +10,7 @@ search scores each hyper-parameter set by cross-validation with folds grouped by
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from collections.abc import Callable, Sequence
@@ -23,7 +24,7 @@ from semantic3d import __version__
 from semantic3d.baselines.common.scans import LabelledScan, TrainingDataError, find_labelled_scans
 from semantic3d.baselines.covariance.config import CovarianceConfig
 from semantic3d.baselines.covariance.estimator import CovarianceClassifier
-from semantic3d.baselines.covariance.model import CovarianceModel
+from semantic3d.baselines.covariance.model import CovarianceModel, GridSearchResult
 from semantic3d.core.classes import N_CLASSES, class_by_value
 from semantic3d.core.errors import DataFormatError, require
 from semantic3d.features.scan import iter_scan_features
@@ -72,31 +73,6 @@ class TrainingSet:
         """Rows per label value."""
         values, counts = np.unique(self.labels, return_counts=True)
         return {int(v): int(c) for v, c in zip(values, counts, strict=True)}
-
-
-@dataclass(frozen=True, slots=True)
-class GridSearchResult:
-    """Cross-validated scores of every grid point (``GridSearchCV.cv_results_`` essentials).
-
-    Attributes:
-        params: the parameter sets, in grid order.
-        mean_scores: mean validation score of each set.
-        std_scores: standard deviation across folds.
-        fit_time_s: mean fit time of each set.
-        best_params: the best set.
-        best_score: its mean score.
-        scoring: the scikit-learn scorer name.
-        n_splits: folds (grouped by scan).
-    """
-
-    params: tuple[dict[str, Any], ...]
-    mean_scores: NDArray[np.float64]
-    std_scores: NDArray[np.float64]
-    fit_time_s: NDArray[np.float64]
-    best_params: dict[str, Any]
-    best_score: float
-    scoring: str
-    n_splits: int
 
 
 def sample_training_points(
@@ -212,9 +188,14 @@ def build_training_set(
 
 
 def fit_model(
-    training: TrainingSet, *, config: CovarianceConfig, n_jobs: int | None = -1
+    training: TrainingSet,
+    *,
+    config: CovarianceConfig,
+    n_jobs: int | None = -1,
+    grid_search: GridSearchResult | None = None,
 ) -> CovarianceModel:
-    """Fit the forest of ``config.forest`` on a training set."""
+    """Fit the forest of ``config.forest`` on a training set (``grid_search``: the search
+    that chose it, recorded in the model)."""
     started = time.perf_counter()
     forest = config.forest
     classifier = CovarianceClassifier(
@@ -234,6 +215,7 @@ def fit_model(
         seed=config.sampling.seed,
         package_version=__version__,
         training_time_s=training.feature_time_s + time.perf_counter() - started,
+        grid_search=grid_search,
     )
 
 
@@ -243,8 +225,26 @@ def train_covariance_model(
     config: CovarianceConfig,
     progress: Progress | None = None,
 ) -> CovarianceModel:
-    """Sample, compute features and fit: the whole training run."""
-    return fit_model(build_training_set(scans, config=config, progress=progress), config=config)
+    """Sample, compute features and fit: the whole training run.
+
+    With ``config.grid_search.select_forest`` the forest's parameters are chosen first by
+    :func:`run_grid_search` on the same sample (folds grouped by scan) and the model
+    is fitted with the best ones, which replace ``config.forest`` in the model's
+    configuration; the search's scores are kept in ``model.grid_search``.
+    """
+    training = build_training_set(scans, config=config, progress=progress)
+    if not config.grid_search.select_forest:
+        return fit_model(training, config=config)
+    started = time.perf_counter()
+    result = run_grid_search(training, config=config)
+    logger.info("grid search: best %s (%.4f)", result.best_params, result.best_score)
+    chosen = dataclasses.replace(
+        config, forest=dataclasses.replace(config.forest, **result.best_params)
+    )
+    model = fit_model(training, config=chosen, grid_search=result)
+    return dataclasses.replace(
+        model, training_time_s=model.training_time_s + time.perf_counter() - started
+    )
 
 
 def run_grid_search(

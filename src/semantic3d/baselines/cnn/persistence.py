@@ -1,0 +1,118 @@
+"""Saving and loading a trained :class:`CnnModel`.
+
+One JSON header line (format and version, package and torch versions, resolved
+configuration, label values, training scans, seed, batches trained), then the network's
+weights as a torch state dict, loaded with ``weights_only=True`` (no arbitrary pickle).
+The header is checked before the weights are read: a file of another kind or format
+version fails with a clear message. Weights are portable across torch versions, so only
+the format version is enforced.
+"""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import IO, Any
+
+from semantic3d.baselines.cnn.config import CnnConfig, config_from_dict, config_to_dict
+from semantic3d.baselines.cnn.model import CnnModel
+from semantic3d.baselines.cnn.network import build_network, count_parameters
+from semantic3d.baselines.common.modelfile import ModelFileError, read_header, write_model_file
+from semantic3d.core.errors import ConfigError, require
+
+torch: Any = require("torch", "torch")
+
+FORMAT = "semantic3d-cnn-model"
+FORMAT_VERSION = 1
+_MAGIC = b"S3DCNN1 "
+_KIND = "cnn model"
+
+__all__ = [
+    "FORMAT",
+    "FORMAT_VERSION",
+    "ModelFileError",
+    "load_model",
+    "read_model_header",
+    "save_model",
+]
+
+
+def save_model(model: CnnModel, path: str | Path) -> Path:
+    """Write ``model`` to ``path`` atomically (parent folders created); returns the path."""
+    header = {
+        "format": FORMAT,
+        "format_version": FORMAT_VERSION,
+        "package_version": model.package_version,
+        "torch_version": str(torch.__version__),
+        "created": datetime.now(UTC).isoformat(timespec="seconds"),
+        "config": config_to_dict(model.config),
+        "label_values": list(model.label_values),
+        "training_scans": list(model.training_scans),
+        "seed": model.seed,
+        "n_batches_trained": model.n_batches_trained,
+        "training_time_s": model.training_time_s,
+        "n_parameters": count_parameters(model.network),
+    }
+    state = {k: v.detach().cpu() for k, v in model.network.state_dict().items()}
+
+    def write(stream: IO[bytes]) -> None:
+        torch.save(state, stream)
+
+    return write_model_file(path, magic=_MAGIC, header=header, write_payload=write)
+
+
+def read_model_header(path: str | Path) -> dict[str, Any]:
+    """The JSON header of a model file, checked, without loading the weights."""
+    path = Path(path)
+    try:
+        with path.open("rb") as stream:
+            return _read_header(stream, path)
+    except OSError as exc:
+        raise ModelFileError(f"{path}: cannot read the model: {exc.strerror}") from exc
+
+
+def load_model(path: str | Path, *, device: str = "cpu") -> CnnModel:
+    """Load a model saved by :func:`save_model`, ready on ``device``.
+
+    Raises:
+        ModelFileError: not a CNN model file, another format version, or weights that do
+            not fit the configuration in its header.
+    """
+    path = Path(path)
+    try:
+        with path.open("rb") as stream:
+            header = _read_header(stream, path)
+            try:
+                config: CnnConfig = config_from_dict(header["config"], source=str(path))
+            except (ConfigError, KeyError) as exc:
+                raise ModelFileError(f"{path}: corrupt model header: {exc}") from exc
+            try:
+                state = torch.load(stream, map_location="cpu", weights_only=True)
+            except Exception as exc:  # torch raises many kinds on a damaged payload
+                raise ModelFileError(f"{path}: corrupt model weights: {exc}") from exc
+    except OSError as exc:
+        raise ModelFileError(f"{path}: cannot read the model: {exc.strerror}") from exc
+    network = build_network(config.cubes, config.network)
+    try:
+        network.load_state_dict(state)
+    except (RuntimeError, TypeError) as exc:
+        raise ModelFileError(
+            f"{path}: expected weights of the network its configuration describes: {exc}"
+        ) from exc
+    model = CnnModel(
+        network,
+        config=config,
+        label_values=tuple(header["label_values"]),
+        training_scans=tuple(header["training_scans"]),
+        seed=int(header["seed"]),
+        n_batches_trained=int(header["n_batches_trained"]),
+        training_time_s=float(header["training_time_s"]),
+        package_version=str(header["package_version"]),
+    )
+    return model.to(device)
+
+
+def _read_header(stream: Any, path: Path) -> dict[str, Any]:
+    return read_header(
+        stream, path, magic=_MAGIC, kind=_KIND, file_format=FORMAT, version=FORMAT_VERSION
+    )

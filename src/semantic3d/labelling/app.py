@@ -1,0 +1,189 @@
+"""The labelling / viewing web app: ``create_label_app(session)`` -> FastAPI.
+
+Routes only parse requests and call :class:`~semantic3d.labelling.session.LabelSession`;
+the page (``static/``, plain ES modules and the vendored three.js) is served as files.
+Errors of the session become 4xx answers carrying the message (``{"detail": ...}``).
+
+API (JSON unless noted; coordinates are metres re-centred on ``origin``):
+
+==========================  ====================================================
+``GET /api/scan``           hierarchy (origin, bounds, nodes), classes, summary
+``GET /api/nodes/{id}``     binary: float32 xyz × n, rgb × n, intensity × n
+``GET /api/nodes/{id}/state`` binary: class × n, working flag × n, prediction × n
+``GET /api/summary``        layer counts, working set size, undo/redo availability
+``POST /api/split``         ``{view_projection: 16 numbers row-major, polygon, keep}``
+``POST /api/fit``           ``{kind, seeds: [[x, y, z]], tolerance_m, radius_m?}``
+``POST /api/assign``        ``{value}``
+``POST /api/reset``         ``{scope: "all" | "unlabelled"}``
+``POST /api/move-layer``    ``{source, target}``
+``POST /api/layers/{value}`` ``{hidden?, locked?}``
+``POST /api/undo`` · ``/api/redo`` · ``/api/save`` ``{path?, overwrite?}``
+``GET /api/history``        the journal's entries
+==========================  ====================================================
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Literal
+
+from semantic3d.core.errors import require
+
+require("fastapi", "label")
+
+from fastapi import FastAPI, HTTPException, Request, Response  # noqa: E402
+from fastapi.responses import FileResponse, JSONResponse  # noqa: E402
+from fastapi.staticfiles import StaticFiles  # noqa: E402
+from pydantic import BaseModel, Field  # noqa: E402
+
+from semantic3d.core.classes import CLASSES, UNLABELLED  # noqa: E402
+from semantic3d.core.errors import OutputExistsError, Semantic3DError, ShapeError  # noqa: E402
+from semantic3d.labelling.errors import OperationError, ReadOnlyError  # noqa: E402
+from semantic3d.labelling.session import LabelSession  # noqa: E402
+
+__all__ = ["STATIC_DIR", "create_label_app"]
+
+STATIC_DIR = Path(__file__).parent / "static"
+
+
+class SplitRequest(BaseModel):
+    view_projection: list[float] = Field(min_length=16, max_length=16)
+    polygon: list[tuple[float, float]] = Field(min_length=3, max_length=10_000)
+    keep: Literal["inside", "outside"] = "inside"
+
+
+class FitRequest(BaseModel):
+    kind: Literal["plane", "line", "cylinder", "sphere"]
+    seeds: list[tuple[float, float, float]] = Field(min_length=1, max_length=1000)
+    tolerance_m: float = Field(gt=0)
+    radius_m: float | None = Field(default=None, gt=0)
+
+
+class AssignRequest(BaseModel):
+    value: int
+
+
+class ResetRequest(BaseModel):
+    scope: Literal["all", "unlabelled"] = "all"
+
+
+class MoveLayerRequest(BaseModel):
+    source: int
+    target: int
+
+
+class LayerRequest(BaseModel):
+    hidden: bool | None = None
+    locked: bool | None = None
+
+
+class SaveRequest(BaseModel):
+    path: str | None = None
+    overwrite: bool = False
+
+
+def create_label_app(session: LabelSession, *, title: str | None = None) -> FastAPI:
+    """The app serving ``session``: the page at ``/``, its API under ``/api``."""
+    app = FastAPI(title=title or "semantic3d labelling", docs_url=None, redoc_url=None)
+    app.state.session = session
+    app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
+    octet = "application/octet-stream"
+
+    @app.exception_handler(Semantic3DError)
+    async def _errors(request: Request, exc: Semantic3DError) -> JSONResponse:
+        status = 400
+        if isinstance(exc, ReadOnlyError):
+            status = 403
+        elif isinstance(exc, OutputExistsError):
+            status = 409
+        elif not isinstance(exc, OperationError | ShapeError):
+            status = 422
+        return JSONResponse({"detail": str(exc)}, status_code=status)
+
+    @app.get("/", include_in_schema=False)
+    def index() -> FileResponse:
+        return FileResponse(STATIC_DIR / "index.html", headers={"Cache-Control": "no-store"})
+
+    @app.get("/api/scan")
+    def scan() -> dict[str, Any]:
+        return {
+            "name": session.scan.path.name,
+            "hierarchy": session.lod.hierarchy(),
+            "classes": [
+                {"value": c.value, "name": c.name, "colour": c.hex_colour}
+                for c in (UNLABELLED, *CLASSES)
+            ],
+            "summary": session.summary(),
+        }
+
+    @app.get("/api/summary")
+    def summary() -> dict[str, Any]:
+        return session.summary()
+
+    @app.get("/api/nodes/{node_id}")
+    def node(node_id: int) -> Response:
+        try:
+            return Response(session.node_points(node_id), media_type=octet)
+        except KeyError:
+            raise HTTPException(404, f"no node {node_id}") from None
+
+    @app.get("/api/nodes/{node_id}/state")
+    def node_state(node_id: int) -> Response:
+        try:
+            return Response(session.node_state(node_id), media_type=octet)
+        except KeyError:
+            raise HTTPException(404, f"no node {node_id}") from None
+
+    def answer(result: Any) -> dict[str, Any]:
+        return {"result": result.to_dict(), "summary": session.summary()}
+
+    @app.post("/api/split")
+    def split(request: SplitRequest) -> dict[str, Any]:
+        return answer(session.split(request.view_projection, request.polygon, keep=request.keep))
+
+    @app.post("/api/fit")
+    def fit(request: FitRequest) -> dict[str, Any]:
+        return answer(
+            session.fit(
+                request.kind,
+                request.seeds,
+                tolerance_m=request.tolerance_m,
+                radius_m=request.radius_m,
+            )
+        )
+
+    @app.post("/api/assign")
+    def assign(request: AssignRequest) -> dict[str, Any]:
+        return answer(session.assign(request.value))
+
+    @app.post("/api/reset")
+    def reset(request: ResetRequest) -> dict[str, Any]:
+        return answer(session.reset(scope=request.scope))
+
+    @app.post("/api/move-layer")
+    def move_layer(request: MoveLayerRequest) -> dict[str, Any]:
+        return answer(session.move_layer(request.source, request.target))
+
+    @app.post("/api/layers/{value}")
+    def layer(value: int, request: LayerRequest) -> dict[str, Any]:
+        session.set_layer(value, hidden=request.hidden, locked=request.locked)
+        return {"summary": session.summary()}
+
+    @app.post("/api/undo")
+    def undo() -> dict[str, Any]:
+        return answer(session.undo())
+
+    @app.post("/api/redo")
+    def redo() -> dict[str, Any]:
+        return answer(session.redo())
+
+    @app.post("/api/save")
+    def save(request: SaveRequest) -> dict[str, Any]:
+        path = session.save(request.path, overwrite=request.overwrite)
+        return {"path": str(path), "summary": session.summary()}
+
+    @app.get("/api/history")
+    def history() -> list[dict[str, Any]]:
+        return [] if session.journal is None else session.journal.operations()
+
+    return app

@@ -1,0 +1,320 @@
+"""A connection to a Dask cluster and an ordered ``map`` over it.
+
+:func:`connect` opens a :class:`DaskCluster` from a :class:`ClusterSpec`: a running
+scheduler (``tcp://HOST:8786``) or a ``LocalCluster`` of worker *processes* started for
+the job and stopped with it. :meth:`DaskCluster.map` sends a picklable function and its
+items (tile jobs, file paths: never arrays) to the workers and yields the results in
+input order, so anything merged from them is merged in one order whatever finished
+first; progress is reported as tasks complete. Dask retries the tasks of a worker that
+dies on the workers left.
+
+Every task first limits the worker's numba, BLAS / OpenMP and torch threads to the
+worker's own thread count (:func:`limit_threads`): two single-threaded workers on a
+two-core machine then use two cores, not four times two.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from dataclasses import dataclass
+from types import TracebackType
+from typing import TYPE_CHECKING, Any, TypeVar
+
+from semantic3d.core.errors import ConfigError, Semantic3DError, require
+
+if TYPE_CHECKING:
+    from distributed import Client
+
+__all__ = [
+    "ClusterError",
+    "ClusterSpec",
+    "DaskCluster",
+    "MapProgress",
+    "connect",
+    "limit_threads",
+]
+
+logger = logging.getLogger(__name__)
+
+T = TypeVar("T")
+R = TypeVar("R")
+
+MapProgress = Callable[[int, int], None]
+"""``progress(tasks_done, tasks_total)``."""
+
+THREAD_VARIABLES = (
+    "OMP_NUM_THREADS",
+    "OPENBLAS_NUM_THREADS",
+    "MKL_NUM_THREADS",
+    "NUMBA_NUM_THREADS",
+)
+"""Environment variables set in the worker processes a :class:`DaskCluster` starts."""
+
+
+class ClusterError(Semantic3DError, RuntimeError):
+    """The cluster cannot be reached or a task failed on every try."""
+
+
+@dataclass(frozen=True, slots=True)
+class ClusterSpec:
+    """Where jobs run: a running scheduler, or local worker processes started for the job.
+
+    Attributes:
+        scheduler: address of a running scheduler (``tcp://HOST:8786``).
+        n_workers: worker processes to start on this machine (a ``LocalCluster``).
+        threads_per_worker: threads of each started worker (and of numba / BLAS in it).
+        memory_limit: memory limit of each started worker (bytes or ``"2GiB"``;
+            ``"auto"`` shares the machine's memory).
+        timeout_s: how long to wait for the scheduler.
+
+    Raises:
+        ConfigError: neither or both of ``scheduler`` and ``n_workers``, or a count < 1.
+    """
+
+    scheduler: str | None = None
+    n_workers: int | None = None
+    threads_per_worker: int = 1
+    memory_limit: str | int = "auto"
+    timeout_s: float = 30.0
+
+    def __post_init__(self) -> None:
+        if (self.scheduler is None) == (self.n_workers is None):
+            raise ConfigError(
+                "cluster: expected a scheduler address or a number of workers, found "
+                + ("both" if self.scheduler is not None else "neither")
+            )
+        if self.n_workers is not None and self.n_workers < 1:
+            raise ConfigError(f"workers: expected at least 1, found {self.n_workers}")
+        if self.threads_per_worker < 1:
+            raise ConfigError(
+                f"threads_per_worker: expected at least 1, found {self.threads_per_worker}"
+            )
+        if self.scheduler is not None and "://" not in self.scheduler:
+            raise ConfigError(
+                f"scheduler: expected an address like tcp://HOST:8786, found {self.scheduler!r}"
+            )
+
+
+class DaskCluster:
+    """A client of a Dask cluster (use as a context manager; see :func:`connect`).
+
+    Attributes:
+        client: the ``distributed.Client``.
+        dashboard_link: address of the scheduler's dashboard (None when it has none).
+    """
+
+    def __init__(self, spec: ClusterSpec) -> None:
+        require("distributed", "dask")
+        from distributed import Client, LocalCluster
+
+        self.spec = spec
+        self._local: LocalCluster | None = None
+        try:
+            if spec.scheduler is not None:
+                self.client: Client = Client(spec.scheduler, timeout=spec.timeout_s)
+            else:
+                env = {name: str(spec.threads_per_worker) for name in THREAD_VARIABLES}
+                self._local = LocalCluster(
+                    n_workers=spec.n_workers,
+                    threads_per_worker=spec.threads_per_worker,
+                    processes=True,
+                    memory_limit=spec.memory_limit,
+                    host="127.0.0.1",
+                    dashboard_address=":0",
+                    env=env,
+                )
+                self.client = Client(self._local, timeout=spec.timeout_s)
+        except OSError as exc:  # TimeoutError included
+            self.close()
+            where = spec.scheduler or "a local cluster"
+            raise ClusterError(f"{where}: expected a Dask scheduler, found none ({exc})") from exc
+        link = self.client.dashboard_link
+        self.dashboard_link: str | None = link or None
+        logger.info("connected to %s (dashboard %s)", self.client.scheduler.address, link)
+
+    def __enter__(self) -> DaskCluster:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        traceback: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Disconnect; stop the workers this object started."""
+        client = getattr(self, "client", None)
+        if client is not None:
+            client.close()
+        if self._local is not None:
+            self._local.close()
+            self._local = None
+
+    @property
+    def n_threads(self) -> int:
+        """Threads of all workers together (0 while none is connected)."""
+        return sum(self.client.nthreads().values())
+
+    def worker_memory(self) -> dict[str, tuple[int, int]]:
+        """``{worker address: (resident bytes now, peak resident bytes)}`` of every worker."""
+        memory: dict[str, tuple[int, int]] = self.client.run(process_memory)
+        return memory
+
+    def map_unordered(
+        self,
+        function: Callable[[T], R],
+        items: Sequence[T],
+        *,
+        progress: MapProgress | None = None,
+    ) -> Iterator[tuple[int, R]]:
+        """``(index, function(items[index]))`` as tasks finish (for merges that need no order).
+
+        Raises:
+            ClusterError: a task failed on every try (e.g. its workers kept dying).
+        """
+        from distributed import as_completed
+
+        total = len(items)
+        if progress is not None:
+            progress(0, total)
+        if not total:
+            return
+        futures = self.client.map(
+            _run_task, [function] * total, items, pure=False, key=_task_keys(function, total)
+        )
+        index = {future.key: number for number, future in enumerate(futures)}
+        try:
+            completed = as_completed(futures, with_results=True, raise_errors=False)
+            for done, (future, result) in enumerate(completed, start=1):
+                if future.status == "error":
+                    error = future.exception()
+                    if isinstance(error, Semantic3DError):
+                        raise error
+                    raise ClusterError(
+                        f"task {index[future.key]} ({items[index[future.key]]!r}): {error!r}"
+                    ) from error
+                number = index[future.key]
+                future.release()
+                if progress is not None:
+                    progress(done, total)
+                yield number, result
+        finally:
+            self.client.cancel(futures)
+
+    def map(
+        self,
+        function: Callable[[T], R],
+        items: Sequence[T],
+        *,
+        progress: MapProgress | None = None,
+    ) -> Iterator[R]:
+        """``function(item)`` for every item, run on the workers, yielded in input order.
+
+        ``function`` and the items must pickle (a module-level function, maybe in a
+        ``functools.partial``; paths and tile jobs, not arrays). Results that finish
+        early wait on this side until those before them arrive.
+
+        Raises:
+            ClusterError: a task failed on every try.
+        """
+        waiting: dict[int, R] = {}
+        next_index = 0
+        for number, result in self.map_unordered(function, items, progress=progress):
+            waiting[number] = result
+            while next_index in waiting:
+                yield waiting.pop(next_index)
+                next_index += 1
+
+
+def _task_keys(function: Callable[..., Any], total: int) -> list[str]:
+    import uuid
+
+    name = getattr(function, "__name__", None) or getattr(
+        getattr(function, "func", None), "__name__", "task"
+    )
+    run = uuid.uuid4().hex[:12]
+    return [f"semantic3d-{name}-{run}-{number}" for number in range(total)]
+
+
+def _run_task(function: Callable[[T], R], item: T) -> R:
+    """What a worker runs: limit the threads, then the task."""
+    limit_threads()
+    return function(item)
+
+
+_LIMITED: dict[str, int] = {}
+
+
+def limit_threads(n_threads: int | None = None) -> int:
+    """Limit numba, BLAS / OpenMP and torch threads of this process; return the limit.
+
+    ``n_threads`` defaults to the Dask worker's thread count (1 outside a worker). numba's
+    setting belongs to the calling thread, so it is set on every call; the others are
+    process-wide and set once.
+    """
+    if n_threads is None:
+        try:
+            from distributed import get_worker
+
+            n_threads = int(get_worker().state.nthreads)
+        except (ImportError, ValueError):
+            n_threads = 1
+    import sys
+
+    numba = sys.modules.get("numba")
+    if numba is not None:
+        numba.set_num_threads(min(n_threads, int(numba.config.NUMBA_NUM_THREADS)))
+    if _LIMITED.get("threads") != n_threads:
+        for name in THREAD_VARIABLES[:3]:
+            os.environ[name] = str(n_threads)
+        from threadpoolctl import threadpool_limits
+
+        threadpool_limits(n_threads)
+        torch = sys.modules.get("torch")
+        if torch is not None:
+            torch.set_num_threads(n_threads)
+        _LIMITED["threads"] = n_threads
+    return n_threads
+
+
+def process_memory() -> tuple[int, int]:
+    """This process's resident and peak resident memory, in bytes (Linux, macOS)."""
+    import resource
+    import sys
+
+    import psutil
+
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return psutil.Process().memory_info().rss, peak if sys.platform == "darwin" else peak << 10
+
+
+def connect(spec: ClusterSpec) -> DaskCluster:
+    """Open the cluster ``spec`` describes (use the result as a context manager).
+
+    Raises:
+        MissingExtraError: Dask is not installed (extra ``dask``).
+        ClusterError: the scheduler does not answer.
+    """
+    return DaskCluster(spec)
+
+
+def map_items(
+    cluster: DaskCluster | None,
+    function: Callable[[T], R],
+    items: Iterable[T],
+    *,
+    progress: MapProgress | None = None,
+) -> Iterator[R]:
+    """``function`` over ``items`` on ``cluster``, or in this process when it is None."""
+    sequence = list(items)
+    if cluster is not None:
+        yield from cluster.map(function, sequence, progress=progress)
+        return
+    for done, item in enumerate(sequence, start=1):
+        yield function(item)
+        if progress is not None:
+            progress(done, len(sequence))

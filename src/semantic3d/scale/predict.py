@@ -1,0 +1,223 @@
+"""Covariance-baseline prediction with the tiles of each scan labelled on a Dask cluster.
+
+:class:`ClusterPredictor` is a :class:`~semantic3d.baselines.common.prediction.Predictor`:
+the ordinary :func:`~semantic3d.baselines.common.prediction.predict_scan` /
+``predict_scans`` loop drives it, so outputs, run records, zips and ``--overwrite`` are
+those of the single-process path. This process streams a scan once into a
+:class:`~semantic3d.features.tiling.TiledScan` (tile store and voxel pyramids in the
+scratch folder, which the workers must see) and computes once what every tile shares
+(:meth:`~semantic3d.features.tiling.TiledScan.share`); each worker opens the scan from
+that folder once, computes one tile's features with the same
+:meth:`~semantic3d.features.tiling.TiledScan.tile_features` the single-process path
+calls and classifies them with the same ``predict_rows``; the labels come back with the
+points' positions and go into the label buffer, which writes ``.labels`` in the input's
+point order. Every scan is tiled here, small ones too: tiled rows equal whole-scan rows
+bit for bit, so the labels are byte for byte those of the single-process path.
+"""
+
+from __future__ import annotations
+
+import pickle
+from collections import OrderedDict
+from collections.abc import Iterable, Iterator, Sequence
+from functools import lru_cache, partial
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from semantic3d.baselines.common.prediction import (
+    LabelledBlock,
+    Progress,
+    RunProgress,
+    predict_scan,
+    predict_scans,
+)
+from semantic3d.baselines.common.run import PredictionRun, PredictionRunSet
+from semantic3d.baselines.common.submission import ScanToLabel
+from semantic3d.baselines.covariance.model import CovarianceModel
+from semantic3d.core.pointcloud import PointCloud
+from semantic3d.features.tiling import TiledScan
+from semantic3d.scale.cluster import DaskCluster, MapProgress
+from semantic3d.spatial.grid import TileKey
+from semantic3d.spatial.store import TileStore
+
+__all__ = [
+    "ClusterPredictor",
+    "TileLabels",
+    "label_tile",
+    "predict_scan_on_cluster",
+    "predict_scans_on_cluster",
+]
+
+MODEL_FILE = "model.pickle"
+"""The model as the workers read it, in the scan's scratch folder."""
+
+TileLabels = tuple[NDArray[np.int64], NDArray[np.uint8]]
+"""``(point_indices, label_values)`` of one tile."""
+
+
+class ClusterPredictor:
+    """A covariance model whose tiles are labelled by the workers of ``cluster``.
+
+    Args:
+        model: the trained model.
+        cluster: where the tiles go.
+        tile_progress: called with tiles done and total of the scan being labelled.
+    """
+
+    def __init__(
+        self,
+        model: CovarianceModel,
+        cluster: DaskCluster,
+        *,
+        tile_progress: MapProgress | None = None,
+    ) -> None:
+        self.model = model
+        self.cluster = cluster
+        self.tile_progress = tile_progress
+
+    @property
+    def training_scans(self) -> tuple[str, ...]:
+        return self.model.training_scans
+
+    @property
+    def chunk_size(self) -> int:
+        return self.model.chunk_size
+
+    def iter_labelled_blocks(
+        self, chunks: Iterable[PointCloud], *, workdir: Path
+    ) -> Iterator[LabelledBlock]:
+        """Tile the scan here, label its tiles on the cluster (blocks in completion order)."""
+        prediction = self.model.config.prediction
+        model_path = workdir / MODEL_FILE
+        with model_path.open("wb") as stream:
+            pickle.dump(self.model, stream, protocol=pickle.HIGHEST_PROTOCOL)
+        with TiledScan(
+            chunks,
+            config=self.model.config.features,
+            tile_size_m=prediction.tile_size_m,
+            workdir=workdir / "tiles",
+        ) as scan:
+            scan.share()  # whole coarse levels and first halos: computed once, here
+            # The scan travels as bytes, opened once per worker process: a task message
+            # that arrives after the scan was closed must not touch its removed folder.
+            scan_state = pickle.dumps(scan, protocol=pickle.HIGHEST_PROTOCOL)
+            task = partial(label_tile, str(scan.workdir), scan_state, str(model_path))
+            tiles = _densest_first(scan)
+            for _, (indices, labels) in self.cluster.map_unordered(
+                task, tiles, progress=self.tile_progress
+            ):
+                yield LabelledBlock(indices, labels, scan.n_points, tiled=True)
+
+
+def _densest_first(scan: TiledScan) -> list[TileKey]:
+    """Tiles by decreasing point count (the long tasks start first; ties in key order)."""
+    return sorted(scan.tiles, key=lambda tile: (-scan.store.count(tile), tile))
+
+
+def label_tile(scan_folder: str, scan_state: bytes, model_path: str, tile: TileKey) -> TileLabels:
+    """Label values of one tile's points, computed where the scan's folder is visible.
+
+    The same features (:meth:`TiledScan.tile_features`) and classifier call
+    (:meth:`CovarianceModel.predict_rows`) as the single-process path.
+
+    Args:
+        scan_folder: the :class:`TiledScan`'s scratch folder (the key it is kept under).
+        scan_state: the pickled :class:`TiledScan` (paths and numbers).
+        model_path: the pickled model.
+        tile: the tile to label.
+    """
+    opened = _open_scan(scan_folder, scan_state)
+    read = _READ_BYTES.get(scan_folder, 0) + RECORD_BYTES * opened.store.count(tile)
+    if read > REOPEN_BYTES:
+        # A fresh store: the pages of the old one's memory map are released instead of
+        # piling up in a long-lived worker (they count in the memory Dask limits).
+        opened.store = TileStore(opened.store.directory or "")
+        read = 0
+    _READ_BYTES[scan_folder] = read
+    features = opened.tile_features(tile)
+    if features is None:
+        return np.empty(0, np.int64), np.empty(0, np.uint8)
+    model = _load_pickled_model(model_path)
+    labels = model.predict_rows(features.table.values)[features.table.point_row]
+    return features.point_indices, labels
+
+
+_OPEN_SCANS: OrderedDict[str, TiledScan] = OrderedDict()
+_READ_BYTES: dict[str, int] = {}
+
+RECORD_BYTES = 44
+"""Bytes of one point in a tile store."""
+
+REOPEN_BYTES = 128 << 20
+"""A worker reopens a scan's tile store after reading this much of it (see ``label_tile``)."""
+_KEPT_SCANS = 2
+
+
+def _open_scan(key: str, state: bytes) -> TiledScan:
+    """The process's copy of a scan (its pyramid cache and whole levels kept across tiles)."""
+    kept = _OPEN_SCANS.get(key)
+    if kept is None:
+        # Bytes this package's client pickled for this job (a TiledScan: paths and numbers).
+        kept = pickle.loads(state)
+        _OPEN_SCANS[key] = kept
+        while len(_OPEN_SCANS) > _KEPT_SCANS:
+            _OPEN_SCANS.popitem(last=False)
+    else:
+        _OPEN_SCANS.move_to_end(key)
+    return kept
+
+
+@lru_cache(maxsize=2)
+def _load_pickled_model(path: str) -> CovarianceModel:
+    # A file this package's client wrote for this job, in a scratch folder it owns.
+    with Path(path).open("rb") as stream:
+        model: CovarianceModel = pickle.load(stream)
+    return model
+
+
+def predict_scan_on_cluster(
+    model: CovarianceModel,
+    points_path: str | Path,
+    *,
+    cluster: DaskCluster,
+    out_path: str | Path,
+    workdir: str | Path | None = None,
+    progress: Progress | None = None,
+    overwrite: bool = False,
+) -> PredictionRun:
+    """:func:`~semantic3d.baselines.common.prediction.predict_scan` with tiles on ``cluster``.
+
+    ``workdir`` must be a folder the workers see (shared filesystem) unless the cluster
+    runs on this machine.
+    """
+    return predict_scan(
+        ClusterPredictor(model, cluster),
+        points_path,
+        out_path=out_path,
+        workdir=workdir,
+        progress=progress,
+        overwrite=overwrite,
+    )
+
+
+def predict_scans_on_cluster(
+    model: CovarianceModel,
+    scans: Sequence[ScanToLabel],
+    out: str | Path,
+    *,
+    cluster: DaskCluster,
+    workdir: str | Path | None = None,
+    progress: RunProgress | None = None,
+    overwrite: bool = False,
+) -> PredictionRunSet:
+    """:func:`~semantic3d.baselines.common.prediction.predict_scans` with tiles on ``cluster``."""
+    return predict_scans(
+        ClusterPredictor(model, cluster),
+        scans,
+        out,
+        workdir=workdir,
+        progress=progress,
+        overwrite=overwrite,
+    )

@@ -1,0 +1,80 @@
+"""Training: the loss falls, the same seed gives the same model, resuming gives it too."""
+
+from __future__ import annotations
+
+import dataclasses
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from semantic3d.baselines.cnn.training import CheckpointError, train_cnn_model
+from semantic3d.baselines.common.scans import TrainingDataError, find_labelled_scans
+from tests.baselines.cnn.conftest import TINY, TrainingRun, make_scene
+from tests.baselines.conftest import write_scan
+
+
+def _same_weights(a: dict[str, torch.Tensor], b: dict[str, torch.Tensor]) -> bool:
+    return a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_loss_falls_and_balanced_accuracy_rises(training_run: TrainingRun) -> None:
+    rounds = [p for p in training_run.progress if p.stage == "train" and p.batch % 10 == 0]
+    assert [p.batch for p in rounds] == [10, 20, 30]
+    assert rounds[-1].loss < 0.8 * rounds[0].loss
+    assert rounds[-1].balanced_accuracy > rounds[0].balanced_accuracy
+    assert training_run.model.label_values == (1, 3, 5, 8)
+    assert training_run.model.n_batches_trained == 30
+
+
+def test_same_seed_gives_the_same_model_and_resuming_the_uninterrupted_one(
+    training_run: TrainingRun, cnn_scans: Path, tmp_path: Path
+) -> None:
+    scans = find_labelled_scans(cnn_scans, names=["train"])
+    ten = dataclasses.replace(TINY, training=dataclasses.replace(TINY.training, n_batches=10))
+    again = train_cnn_model(scans, config=ten)  # a fresh run of 10 batches, same seed
+    saved = torch.load(training_run.checkpoint_10, weights_only=True)
+    assert saved["batch"] == 10
+    assert _same_weights(again.network.state_dict(), saved["network"])
+    checkpoint = tmp_path / "run.checkpoint"
+    shutil.copy(training_run.checkpoint_20, checkpoint)
+    resumed = train_cnn_model(scans, config=TINY, checkpoint=checkpoint, resume=True)
+    assert resumed.n_batches_trained == 30
+    assert _same_weights(resumed.network.state_dict(), training_run.model.network.state_dict())
+    assert not _same_weights(again.network.state_dict(), resumed.network.state_dict())
+    other_seed = dataclasses.replace(TINY, training=dataclasses.replace(TINY.training, seed=1))
+    with pytest.raises(CheckpointError, match="written with another configuration"):
+        train_cnn_model(scans, config=other_seed, checkpoint=checkpoint, resume=True)
+
+
+def test_bad_training_input_is_refused(cnn_scans: Path, tmp_path: Path) -> None:
+    scans = find_labelled_scans(cnn_scans, names=["train"])
+    with pytest.raises(CheckpointError, match="expected a checkpoint to resume from, found none"):
+        train_cnn_model(scans, config=TINY, checkpoint=tmp_path / "none", resume=True)
+    (tmp_path / "junk.checkpoint").write_bytes(b"not a checkpoint")
+    with pytest.raises(CheckpointError, match="not a training checkpoint"):
+        train_cnn_model(scans, config=TINY, checkpoint=tmp_path / "junk.checkpoint", resume=True)
+    cloud = make_scene(3)
+    write_scan(tmp_path / "one", "flat", cloud.with_labels(np.ones(cloud.n_points, np.uint8)))
+    with pytest.raises(TrainingDataError, match=r"at least 2 labelled classes, found \[1\]"):
+        train_cnn_model(find_labelled_scans(tmp_path / "one"), config=TINY)
+    listed = dataclasses.replace(TINY, training=dataclasses.replace(TINY.training, classes=(1, 2)))
+    with pytest.raises(TrainingDataError, match=r"class\(es\) 2 \(natural"):
+        train_cnn_model(scans, config=listed)
+
+
+def test_cross_validation_holds_out_each_scan_once(cnn_scans: Path) -> None:
+    from semantic3d.baselines.cnn.crossval import cross_validate, scan_folds
+
+    short = dataclasses.replace(TINY, training=dataclasses.replace(TINY.training, n_batches=3))
+    result = cross_validate(
+        find_labelled_scans(cnn_scans), config=short, n_folds=2, points_per_scan=200
+    )
+    assert [fold.test_scans for fold in result.folds] == [("test",), ("train",)]
+    assert [fold.train_scans for fold in result.folds] == [("train",), ("test",)]
+    assert all(fold.n_points == 200 for fold in result.folds)
+    assert result.scores.n_points == 400
+    with pytest.raises(TrainingDataError, match=r"expected 2\.\.2 folds for 2 scans, found 3"):
+        scan_folds(["a", "b"], 3)

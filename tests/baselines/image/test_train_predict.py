@@ -1,0 +1,174 @@
+"""Train and predict end to end on simulated scans; model files; the command line."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import typer
+from PIL import Image
+from typer.testing import CliRunner
+
+from semantic3d.baselines.common.modelfile import ModelFileError
+from semantic3d.baselines.common.scans import find_labelled_scans
+from semantic3d.baselines.image.config import config_from_dict
+from semantic3d.baselines.image.model import ImageModel, ImageVariant
+from semantic3d.baselines.image.persistence import load_model, save_model
+from semantic3d.baselines.image.predict import predict_image_scan
+from semantic3d.baselines.image.training import render_scan, train_image_model
+from semantic3d.cli import baseline
+from semantic3d.core.errors import OutputExistsError
+from semantic3d.io.labels import read_labels
+
+TINY = {
+    "preset": "small",
+    "faces": {"size": 64, "chunk_size": 20_000},
+    "words": {"n_words": 8, "sample_pixels": 4000},
+    "rectangles": {"n_rectangles": 8, "max_offset_px": 10},
+    "boosting": {"max_iter": 15, "pixels_per_class_per_face": 150},
+    "unet": {"base_channels": 4, "depth": 2, "epochs": 2, "batch_size": 6, "crop_px": 32},
+}
+TINY_TOML = """preset = "small"
+[faces]
+size = 64
+chunk_size = 20000
+[words]
+n_words = 8
+sample_pixels = 4000
+[rectangles]
+n_rectangles = 8
+max_offset_px = 10
+[boosting]
+max_iter = 15
+pixels_per_class_per_face = 150
+"""
+
+runner = CliRunner()
+
+
+@pytest.fixture(scope="module")
+def boosted(simulated_dir: Path) -> ImageModel:
+    scans = find_labelled_scans(simulated_dir, names=["street1"])
+    return train_image_model(scans, config=config_from_dict(TINY), variant=ImageVariant.BOOSTED)
+
+
+def _overall_accuracy(truth: np.ndarray, predicted: np.ndarray) -> float:
+    labelled = truth > 0
+    return float((truth[labelled] == predicted[labelled]).mean())
+
+
+def test_boosted_beats_the_majority_class_on_another_scene(
+    boosted: ImageModel, simulated_dir: Path, tmp_path: Path
+) -> None:
+    out = tmp_path / "street2.labels"
+    result = predict_image_scan(boosted, simulated_dir / "street2.txt", out_path=out)
+    truth = read_labels(simulated_dir / "street2.labels")
+    predicted = read_labels(out)
+    assert predicted.size == truth.size
+    assert 7 not in set(predicted.tolist())  # class 7 is ignored in 2D
+    majority = np.bincount(truth[truth > 0]).max() / (truth > 0).sum()
+    assert _overall_accuracy(truth, predicted) > majority + 0.05
+    assert result.station.source == "estimated"
+    record = json.loads(out.with_name("street2.labels.json").read_text())
+    assert record["n_points"] == truth.size and record["training_scans"] == ["street1"]
+    picture = np.asarray(Image.open(result.faces_dir / "px.png"))  # type: ignore[operator]
+    assert picture.shape == (64, 3 * 64 + 2 * 4, 3)  # colour | truth | prediction
+    with pytest.raises(OutputExistsError, match="already exists"):
+        predict_image_scan(boosted, simulated_dir / "street2.txt", out_path=out)
+
+
+def test_model_round_trip_predicts_the_same(
+    boosted: ImageModel, simulated_dir: Path, tmp_path: Path
+) -> None:
+    path = save_model(boosted, tmp_path / "m.s3d")
+    loaded = load_model(path)
+    assert loaded.label_values == boosted.label_values
+    station = boosted.training_stations[0]
+    for model, name in ((boosted, "a"), (loaded, "b")):
+        predict_image_scan(
+            model,
+            simulated_dir / "street1.txt",
+            out_path=tmp_path / f"{name}.labels",
+            station=station,
+            write_faces=False,
+        )
+    np.testing.assert_array_equal(
+        read_labels(tmp_path / "a.labels"), read_labels(tmp_path / "b.labels")
+    )
+    (tmp_path / "bad.s3d").write_bytes(b"S3DCOV1 {}\n")
+    with pytest.raises(ModelFileError, match="not a semantic3d image model"):
+        load_model(tmp_path / "bad.s3d")
+
+
+def test_unet_variant_trains_and_round_trips(simulated_dir: Path, tmp_path: Path) -> None:
+    pytest.importorskip("torch")
+    scans = find_labelled_scans(simulated_dir, names=["street1"])
+    model = train_image_model(scans, config=config_from_dict(TINY), variant=ImageVariant.UNET)
+    loaded = load_model(save_model(model, tmp_path / "u.s3d"))
+    assert loaded.variant is ImageVariant.UNET
+    cubemap, _ = render_scan(scans[0], config=model.config)
+    np.testing.assert_array_equal(model.segment_cubemap(cubemap), loaded.segment_cubemap(cubemap))
+    predict_image_scan(
+        loaded, simulated_dir / "street2.txt", out_path=tmp_path / "u.labels", write_faces=False
+    )
+    predicted = read_labels(tmp_path / "u.labels")
+    assert predicted.size == read_labels(simulated_dir / "street2.labels").size
+    assert set(predicted.tolist()) <= set(model.label_values)
+
+
+@pytest.fixture(scope="module")
+def app() -> typer.Typer:
+    application = typer.Typer()
+
+    @application.callback()
+    def _root() -> None:
+        """Test root."""
+
+    baseline.register(application)
+    return application
+
+
+def test_cli_train_predict_and_errors(
+    app: typer.Typer, boosted: ImageModel, simulated_dir: Path, tmp_path: Path
+) -> None:
+    config = tmp_path / "tiny.toml"
+    config.write_text(TINY_TOML)
+    model = save_model(boosted, tmp_path / "m.s3d")
+    refused = runner.invoke(
+        app,
+        ["baseline", "image", "train", "--data", str(simulated_dir), "--out", str(model)],
+    )
+    assert refused.exit_code == 2 and "already exists" in refused.output
+    bad = runner.invoke(
+        app,
+        [
+            "baseline",
+            "image",
+            "train",
+            "--data",
+            str(simulated_dir),
+            "--config",
+            str(config),
+            "--preset",
+            "paper",
+            "--out",
+            str(tmp_path / "n.s3d"),
+        ],
+    )
+    assert bad.exit_code == 2 and "found both" in bad.output
+    scan = simulated_dir / "street2.txt"
+    out = tmp_path / "pred"
+    predict = ["baseline", "image", "predict", str(scan), "--model", str(model), "--out", str(out)]
+    wrong = runner.invoke(app, [*predict, "--station", "1,2"])
+    assert wrong.exit_code == 2 and "station: expected x,y,z" in wrong.output
+    done = runner.invoke(app, [*predict, "--station", "6,0,1.8", "--no-faces"])
+    assert done.exit_code == 0, done.output
+    assert "[option]" in done.output
+    assert (
+        read_labels(out / "street2.labels").size
+        == read_labels(simulated_dir / "street2.labels").size
+    )
+    again = runner.invoke(app, [*predict, "--no-faces"])
+    assert again.exit_code == 2 and "already exists" in again.output

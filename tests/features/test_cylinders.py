@@ -1,0 +1,97 @@
+"""Height features of vertical cylinders against a brute-force reference; their columns."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from semantic3d.core import PointCloud
+from semantic3d.core.errors import ShapeError
+from semantic3d.features import ConfigError, FeatureConfig, compute_multiscale_features
+from semantic3d.features.cylinders import compute_cylinder_features
+from semantic3d.features.names import CYLINDER_FEATURES, GEOMETRIC_FEATURES
+
+
+def reference(points: np.ndarray, queries: np.ndarray, radius_m: float) -> np.ndarray:
+    """Every point tested against every query, float64 (squared distances, as the kernel:
+    on the lattice many points lie at exactly the radius)."""
+    rows = []
+    for q in queries:
+        dx, dy = points[:, 0] - q[0], points[:, 1] - q[1]
+        inside = dx * dx + dy * dy <= radius_m * radius_m
+        z = points[inside, 2]
+        if z.size == 0:
+            rows.append([0.0, 0.0, 0.0, 0.0])
+        else:
+            rows.append([z.max() - z.min(), q[2] - z.min(), z.max() - q[2], z.size])
+    return np.array(rows)
+
+
+@pytest.mark.parametrize("radius_m", [0.05, 0.3, 2.0])
+def test_cylinders_match_a_brute_force_search(radius_m: float) -> None:
+    rng = np.random.default_rng(3)
+    # on a 1 cm lattice (as Oakland): many points at exactly the radius
+    points = np.round(rng.uniform(-1.5, 1.5, size=(3000, 3)), 2)
+    queries = np.vstack([points[:200], rng.uniform(-2.5, 2.5, size=(100, 3))])
+    got = compute_cylinder_features(points, queries, radius_m=radius_m)
+    np.testing.assert_allclose(got, reference(points, queries, radius_m), rtol=1e-6, atol=1e-6)
+    assert (got[:200, 3] >= 1).all()  # a level point is in its own cylinder
+
+
+def test_a_cylinder_ignores_height_but_not_horizontal_distance() -> None:
+    points = np.array([[0.0, 0, 0], [0.0, 0, 30.0], [0.5, 0, 10], [2.0, 0, -5]])
+    got = compute_cylinder_features(points, np.array([[0.0, 0, 1.0]]), radius_m=1.0)
+    np.testing.assert_allclose(got, [[30.0, 1.0, 29.0, 3.0]])
+
+
+def test_empty_cylinders_and_bad_inputs() -> None:
+    far = compute_cylinder_features(np.zeros((2, 3)), np.array([[9.0, 9, 9]]), radius_m=1.0)
+    assert np.array_equal(far, np.zeros((1, 4), np.float32))
+    with pytest.raises(ShapeError, match="radius_m: expected a positive radius, found 0"):
+        compute_cylinder_features(np.zeros((2, 3)), np.zeros((1, 3)), radius_m=0.0)
+    with pytest.raises(ShapeError, match=r"expected \(n, 3\) and \(m, 3\), found \(2, 2\)"):
+        compute_cylinder_features(np.zeros((2, 2)), np.zeros((1, 3)), radius_m=1.0)
+    with pytest.raises(ConfigError, match="cylinder_radius_voxels: expected a radius in"):
+        FeatureConfig(cylinder_radius_voxels=0.0)
+
+
+def test_cylinder_columns_follow_the_knn_columns_at_every_level() -> None:
+    config = FeatureConfig(
+        base_voxel_size_m=0.1, n_levels=3, cylinders=True, cylinder_features=CYLINDER_FEATURES
+    )
+    per_level = GEOMETRIC_FEATURES + CYLINDER_FEATURES
+    assert config.level_feature_names == per_level
+    assert config.feature_names[len(per_level)] == "sum_of_eigenvalues@0.200m"
+    without = FeatureConfig(spherical_height=False, cylinder_features=CYLINDER_FEATURES)
+    assert "height_below" not in without.level_feature_names
+    assert without.n_features == 9 * (len(GEOMETRIC_FEATURES) - 3 + len(CYLINDER_FEATURES))
+    assert config.cylinder_radius_m(2) == pytest.approx(0.8)
+    assert FeatureConfig().level_feature_names == (*GEOMETRIC_FEATURES, "cylinder_below")
+    assert FeatureConfig(cylinders=False).level_feature_names == GEOMETRIC_FEATURES
+
+
+def test_a_pole_stands_out_of_its_cylinder() -> None:
+    """A 3 m pole on flat ground: the pole's top is 3 m above the ground around it."""
+    grid = np.stack(np.meshgrid(np.arange(0, 4, 0.1), np.arange(0, 4, 0.1)), -1).reshape(-1, 2)
+    ground = np.column_stack([grid, np.zeros(len(grid))])
+    pole = np.column_stack([np.full(31, 2.02), np.full(31, 2.02), np.linspace(0, 3, 31)])
+    cloud = PointCloud.from_arrays(np.vstack([ground, pole]) + 100.0)
+    config = FeatureConfig(base_voxel_size_m=0.1, n_levels=3, cylinders=True)
+    rows = compute_multiscale_features(cloud, config=config).point_values()
+    below = rows[:, config.feature_names.index("cylinder_below@0.400m")]
+    assert below[-1] == pytest.approx(3.0, abs=0.06)  # the pole's top
+    assert np.abs(below[: len(ground)]).max() < 0.06  # the ground
+
+
+def test_a_subset_of_cylinder_columns_is_the_same_values() -> None:
+    rng = np.random.default_rng(5)
+    cloud = PointCloud.from_arrays(rng.uniform(0, 4, size=(2000, 3)) + 50.0)
+    every = FeatureConfig(base_voxel_size_m=0.2, n_levels=3, cylinder_features=CYLINDER_FEATURES)
+    below = FeatureConfig(base_voxel_size_m=0.2, n_levels=3, cylinder_features=("cylinder_below",))
+    assert below.level_feature_names == (*GEOMETRIC_FEATURES, "cylinder_below")
+    full = compute_multiscale_features(cloud, config=every).point_values()
+    part = compute_multiscale_features(cloud, config=below).point_values()
+    for column, name in enumerate(below.feature_names):
+        assert np.array_equal(part[:, column], full[:, every.feature_names.index(name)])
+    with pytest.raises(ConfigError, match="cylinder_features: expected some of"):
+        FeatureConfig(cylinder_features=("cylinder_above", "cylinder_range"))

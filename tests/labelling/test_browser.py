@@ -1,0 +1,256 @@
+"""Both workflows driven in a real headless Chromium (Debian's, WebGL through SwiftShader).
+
+Open a simulated scan, split it with a polygon drawn in the fixed top view, fit the ground
+plane through three picked points, assign classes, undo with the keyboard, save, and check
+the written ``.labels``. Screenshots are kept in the test's temporary folder (or under
+``$SEMANTIC3D_TEST_ARTIFACTS``). Never downloads a browser: skips without /usr/bin/chromium.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from semantic3d.io import read_labels
+from semantic3d.labelling.session import LabelSession, open_label_session
+
+from .conftest import NODE_CAPACITY
+
+pytestmark = pytest.mark.slow
+
+CHROMIUM = Path("/usr/bin/chromium")
+CHROMIUM_ARGS = [
+    "--headless",
+    "--no-sandbox",
+    "--use-gl=angle",
+    "--use-angle=swiftshader",
+    "--enable-unsafe-swiftshader",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+]
+HALF_SQUARE_M = 12.0
+
+
+@pytest.fixture(scope="module")
+def browser():
+    sync_api = pytest.importorskip("playwright.sync_api")
+    if not CHROMIUM.exists():
+        pytest.skip("Debian's chromium is not installed at /usr/bin/chromium")
+    with sync_api.sync_playwright() as playwright:
+        browser = playwright.chromium.launch(
+            executable_path=str(CHROMIUM), headless=True, args=CHROMIUM_ARGS
+        )
+        try:
+            yield browser
+        finally:
+            browser.close()
+
+
+class _Server:
+    """The app served by uvicorn in a thread of this process, on a free port."""
+
+    def __init__(self, session: LabelSession) -> None:
+        import uvicorn
+
+        from semantic3d.labelling.app import create_label_app
+
+        with socket.socket() as probe:
+            probe.bind(("127.0.0.1", 0))
+            port = probe.getsockname()[1]
+        config = uvicorn.Config(
+            create_label_app(session), host="127.0.0.1", port=port, log_level="warning"
+        )
+        self.server = uvicorn.Server(config)
+        self.thread = threading.Thread(target=self.server.run, daemon=True)
+        self.thread.start()
+        deadline = time.monotonic() + 20
+        while not self.server.started:
+            if time.monotonic() > deadline:
+                raise RuntimeError("the labelling server did not start")
+            time.sleep(0.05)
+        self.url = f"http://127.0.0.1:{port}/"
+
+    def stop(self) -> None:
+        self.server.should_exit = True
+        self.thread.join(10)
+
+
+@pytest.fixture
+def served(simulated_scan, tmp_path) -> Iterator[tuple[_Server, LabelSession, Path]]:
+    labels_path = tmp_path / "browser.labels"
+    session = open_label_session(
+        simulated_scan.cache.path, labels_path=labels_path, node_capacity=NODE_CAPACITY
+    )
+    server = _Server(session)
+    try:
+        yield server, session, labels_path
+    finally:
+        server.stop()
+        session.close()
+
+
+def _idle(page) -> None:
+    page.wait_for_function(
+        "() => { const s = document.getElementById('status');"
+        " return s.dataset.idle === 'true' && !s.textContent.startsWith('0 '); }",
+        timeout=30_000,
+    )
+    page.wait_for_timeout(150)  # one more animation frame after the last node
+
+
+def _client(page, xyz) -> tuple[float, float]:
+    x, y = page.evaluate("p => window.labelApp.viewer.toClient(p[0], p[1], p[2])", list(xyz))
+    return x, y
+
+
+def test_polygon_split_plane_fit_assign_undo_save(browser, served, simulated_scan, tmp_path):
+    server, session, labels_path = served
+    artifacts = Path(os.environ.get("SEMANTIC3D_TEST_ARTIFACTS", tmp_path))
+    artifacts.mkdir(parents=True, exist_ok=True)
+    page = browser.new_page(viewport={"width": 1200, "height": 800})
+    errors: list[str] = []
+    page.on("pageerror", lambda error: errors.append(str(error)))
+    try:
+        page.goto(server.url)
+        _idle(page)
+        page.screenshot(path=str(artifacts / "labelling-1-opened.png"))
+        n = session.n_points
+        assert page.inner_text("#working-count") == f"{n:,}"
+
+        # 2D workflow: fixed top view, a square around the scanner, keep the inside.
+        page.click("#view-top")
+        _idle(page)
+        origin = session.origin
+        station = np.array(simulated_scan.station_m) - origin
+        h = HALF_SQUARE_M
+        corners = [
+            station + np.array((dx, dy, 0.0)) for dx, dy in ((-h, -h), (h, -h), (h, h), (-h, h))
+        ]
+        page.click("#draw-polygon")
+        for corner in corners:
+            page.mouse.click(*_client(page, corner))
+        page.click("#finish-polygon")
+        page.screenshot(path=str(artifacts / "labelling-2-polygon.png"))
+        page.click("#keep-inside")
+        page.wait_for_function(f"document.getElementById('working-count').textContent !== '{n:,}'")
+        _idle(page)
+        xy = np.asarray(simulated_scan.cache.xyz)[:, :2] - origin[:2] - station[:2]
+        offset = np.abs(xy).max(axis=1)
+        working = session.working
+        assert 0 < working.sum() < n
+        assert (offset[working] < h + 1.0).all()  # the polygon's edges are pixel-snapped
+        assert working[offset < h - 1.0].all()
+
+        # 3D workflow: frame the working set, pick three ground points, fit a plane.
+        page.click("#frame-working")
+        _idle(page)
+        page.click("#pick-points")
+        ground = station - (0.0, 0.0, simulated_scan.station_m[2])  # the tripod stands on it
+        for dx, dy in ((4.0, 0.5), (-3.0, 3.5), (0.5, -4.0)):
+            page.mouse.click(*_client(page, ground + np.array((dx, dy, 0.0))))
+        assert page.inner_text("#pick-count") == "3 picked"
+        page.select_option("#model-kind", "plane")
+        before_fit = int(session.working.sum())
+        page.click("#fit-model")
+        page.wait_for_function(
+            "document.getElementById('fit-result').textContent.includes('inliers')"
+        )
+        _idle(page)
+        page.screenshot(path=str(artifacts / "labelling-3-plane-fit.png"))
+        inliers = int(session.working.sum())
+        assert 0 < inliers < before_fit
+        model = session.journal.operations()[-1]["operation"]["model"]
+        assert model["kind"] == "plane" and abs(model["normal"][2]) > 0.95
+
+        # Assign the inliers to natural terrain, the rest of the scan to buildings, undo that.
+        page.select_option("#assign-class", "2")
+        page.click("#assign")
+        page.wait_for_function(
+            "document.querySelector('#layers tr[data-value=\"2\"] td.count').textContent !== '0'"
+        )
+        page.click("#reset-unlabelled")
+        page.wait_for_function(
+            f"document.getElementById('working-count').textContent === '{n - inliers:,}'"
+        )
+        page.select_option("#assign-class", "5")
+        page.click("#assign")
+        page.wait_for_function(
+            "document.querySelector('#layers tr[data-value=\"0\"] td.count').textContent === '0'"
+        )
+        _idle(page)
+        page.keyboard.press("Control+z")
+        page.wait_for_function(
+            "document.querySelector('#layers tr[data-value=\"5\"] td.count').textContent === '0'"
+        )
+        page.select_option("#colour-mode", "class")
+        _idle(page)
+        page.screenshot(path=str(artifacts / "labelling-4-assigned.png"))
+        page.click("#save")
+        page.wait_for_function(
+            "document.getElementById('save-status').textContent.startsWith('saved')"
+        )
+    finally:
+        page.close()
+    labels = read_labels(labels_path)
+    assert labels.size == n
+    assert (labels == 2).sum() == inliers and set(np.unique(labels)) == {0, 2}
+    on_plane = labels == 2
+    assert (offset[on_plane] < h + 1.0).all()
+    heights = np.asarray(simulated_scan.cache.xyz)[on_plane, 2]
+    assert np.ptp(heights) < 3.0  # a ground plane, not the walls
+    assert (simulated_scan.truth[on_plane] == 5).sum() < 0.05 * on_plane.sum()
+    assert not errors, errors
+    assert (artifacts / "labelling-4-assigned.png").stat().st_size > 5_000
+
+
+def test_the_viewer_shows_prediction_errors_read_only(browser, simulated_scan, tmp_path):
+    from PIL import Image
+
+    from semantic3d.io import write_labels
+
+    truth = simulated_scan.truth
+    prediction = truth.copy()
+    wrong = np.random.default_rng(0).random(truth.size) < 0.3
+    prediction[wrong] = (prediction[wrong] % 8) + 1
+    pred_path = tmp_path / "pred.labels"
+    write_labels(pred_path, [prediction])
+    session = open_label_session(
+        simulated_scan.cache.path,
+        labels_path=simulated_scan.truth_path,
+        prediction_path=pred_path,
+        read_only=True,
+        node_capacity=NODE_CAPACITY,
+    )
+    server = _Server(session)
+    artifacts = Path(os.environ.get("SEMANTIC3D_TEST_ARTIFACTS", tmp_path))
+    page = browser.new_page(viewport={"width": 1000, "height": 700})
+    try:
+        page.goto(server.url)
+        _idle(page)
+        assert page.inner_text("#mode-line") == "read-only viewer"
+        assert not page.is_visible("#draw-polygon") and not page.is_visible("#assign")
+        page.click("#view-top")
+        page.select_option("#colour-mode", "errors")
+        page.evaluate(
+            "() => { const s = document.getElementById('point-size');"
+            " s.value = '4'; s.dispatchEvent(new Event('input')); }"
+        )
+        _idle(page)
+        shot = artifacts / "viewer-errors.png"
+        page.locator("#stage").screenshot(path=str(shot))
+    finally:
+        page.close()
+        server.stop()
+        session.close()
+    pixels = np.asarray(Image.open(shot).convert("RGB")).reshape(-1, 3).astype(int)
+    red = ((pixels[:, 0] > 180) & (pixels[:, 1] < 80) & (pixels[:, 2] < 80)).sum()
+    green = ((pixels[:, 1] > 140) & (pixels[:, 0] < 90) & (pixels[:, 2] < 110)).sum()
+    assert red > 50 and green > 50 and green > red  # 70 % right, 30 % wrong

@@ -1,0 +1,126 @@
+"""The journal: undo/redo, a crash in the middle of an operation, resuming, stale journals."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from semantic3d.io import read_labels
+from semantic3d.labelling.errors import JournalError, OperationError
+from semantic3d.labelling.journal import Journal
+from semantic3d.labelling.session import journal_path_for, open_label_session
+
+from .conftest import NODE_CAPACITY
+
+TOP_VIEW = np.diag([0.02, 0.02, -0.001, 1.0])  # x, y in [-50, 50] m fill the screen
+SQUARE = [(-0.2, -0.2), (0.2, -0.2), (0.2, 0.2), (-0.2, 0.2)]
+
+
+def _open(scan, labels: Path):
+    return open_label_session(scan.cache.path, labels_path=labels, node_capacity=NODE_CAPACITY)
+
+
+def test_undo_redo_and_resume(simulated_scan, tmp_path: Path) -> None:
+    labels_path = tmp_path / "mine.labels"
+    session = _open(simulated_scan, labels_path)
+    n = session.n_points
+    split = session.split(TOP_VIEW, SQUARE, keep="inside")
+    assert 0 < split.n_working < n
+    inside = session.working.copy()
+    session.assign(2)
+    session.reset(scope="unlabelled")
+    assert session.working.sum() == n - inside.sum()
+    session.split(TOP_VIEW, SQUARE, keep="outside")  # nothing unlabelled inside anyway
+    session.assign(5)
+    np.testing.assert_array_equal(session.labels, np.where(inside, 2, 5))
+    session.undo()
+    np.testing.assert_array_equal(session.labels, np.where(inside, 2, 0))
+    session.undo()
+    session.undo()
+    session.redo()
+    expected_labels, expected_working = session.labels.copy(), session.working.copy()
+    assert len(session.undo_stack) == 3 and len(session.redo_stack) == 2
+    session.close()
+
+    resumed = _open(simulated_scan, labels_path)  # nothing saved: the journal alone resumes
+    np.testing.assert_array_equal(resumed.labels, expected_labels)
+    np.testing.assert_array_equal(resumed.working, expected_working)
+    assert len(resumed.undo_stack) == 3 and len(resumed.redo_stack) == 2
+    resumed.redo()
+    resumed.assign(3)  # a new operation clears the redo stack
+    with pytest.raises(OperationError, match="nothing to redo"):
+        resumed.redo()
+    saved = resumed.save()
+    np.testing.assert_array_equal(read_labels(saved), resumed.labels)
+    resumed.close()
+    again = _open(simulated_scan, labels_path)  # the saved file and the journal agree
+    np.testing.assert_array_equal(again.labels, read_labels(saved))
+    assert len(again.undo_stack) == 5
+    again.undo()  # undo reaches back before the save
+    assert (again.labels == 3).sum() == 0
+    again.close()
+
+
+def test_a_crash_mid_operation_loses_only_that_operation(simulated_scan, tmp_path: Path) -> None:
+    labels_path = tmp_path / "crash.labels"
+    script = textwrap.dedent(
+        f"""
+        import os, signal
+        import numpy as np
+        from semantic3d.labelling.session import open_label_session
+        s = open_label_session({str(simulated_scan.cache.path)!r},
+                               labels_path={str(labels_path)!r}, node_capacity={NODE_CAPACITY})
+        s.split(np.diag([0.02, 0.02, -0.001, 1.0]), {SQUARE!r})
+        s.assign(6)
+        # The next operation is killed half way through its transaction.
+        s.journal._connection.execute("BEGIN IMMEDIATE")
+        s.journal._connection.execute(
+            "INSERT INTO entries (kind, operation, payload, created_s) "
+            "VALUES ('apply', '{{}}', x'00', 0)"
+        )
+        os.kill(os.getpid(), signal.SIGKILL)
+        """
+    )
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, check=False)
+    assert done.returncode == -9, done.stderr.decode()
+    assert not labels_path.exists()
+    resumed = _open(simulated_scan, labels_path)
+    assert len(resumed.undo_stack) == 2  # split and assign survived, the torn entry did not
+    assert (resumed.labels == 6).sum() == resumed.working.sum() > 0
+    assert all(entry["created_s"] > 0 for entry in resumed.journal.operations())
+    resumed.close()
+
+
+def test_a_labels_file_changed_elsewhere_starts_a_new_journal(simulated_scan, tmp_path) -> None:
+    labels_path = tmp_path / "edited.labels"
+    session = _open(simulated_scan, labels_path)
+    session.split(TOP_VIEW, SQUARE)
+    session.assign(1)
+    session.save()
+    session.close()
+    labels_path.write_text("4\n" * simulated_scan.cache.n_points)  # edited by another tool
+    reopened = _open(simulated_scan, labels_path)
+    assert (reopened.labels == 4).all() and reopened.undo_stack == []
+    assert len(list(tmp_path.glob("edited.labels.journal.stale-*"))) == 1
+    reopened.close()
+
+
+def test_a_journal_of_another_scan_is_refused(tmp_path: Path) -> None:
+    path = tmp_path / "x.journal"
+    Journal(path, scan_id="aaaa", n_points=10).close()
+    with pytest.raises(JournalError, match="expected the journal of scan bbbb"):
+        Journal(path, scan_id="bbbb", n_points=10)
+    os.truncate(path, 0)
+    path.write_bytes(b"not a database" * 100)
+    with pytest.raises(JournalError, match="unreadable"):
+        Journal(path, scan_id="aaaa", n_points=10)
+
+
+def test_journal_lives_beside_the_labels() -> None:
+    assert journal_path_for(Path("a/b.labels")) == Path("a/b.labels.journal")

@@ -1,0 +1,108 @@
+"""The compiled counting sorts and box selection of the tile store against numpy references
+(the expressions the store used before: stable argsorts, boolean masks)."""
+
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from semantic3d.core.pointcloud import PointCloud
+from semantic3d.spatial import TemporaryTileStore, TileGrid
+from semantic3d.spatial.store import TilePoints, record_dtype, xyz_label_rows
+
+
+def _reference(cloud: PointCloud, keep: np.ndarray, grid: TileGrid, n_sub: int) -> dict:
+    """The store's arrays by numpy: records grouped by tile (scan order inside), each
+    tile's points ordered by sub-cell with a stable argsort, and the sub-cell offsets."""
+    kept = np.flatnonzero(keep)
+    keys = grid.tile_keys(cloud.xyz)[kept]
+    tiles = sorted({(int(x), int(y)) for x, y in keys})
+    records = np.empty(kept.size, record_dtype(with_labels=cloud.labels is not None))
+    order = np.empty(kept.size, np.int32)
+    offsets = np.zeros((len(tiles), n_sub * n_sub + 1), np.int64)
+    begin = 0
+    for row, tile in enumerate(tiles):
+        mine = kept[(keys[:, 0] == tile[0]) & (keys[:, 1] == tile[1])]
+        end = begin + mine.size
+        part = records[begin:end]
+        part["xyz"], part["index"] = cloud.xyz[mine], mine
+        part["intensity"], part["rgb"] = cloud.intensity[mine], cloud.rgb[mine]
+        if cloud.labels is not None:
+            part["labels"] = cloud.labels[mine]
+        t_x0, t_y0, _, _ = grid.tile_bounds(tile)
+        size = grid.tile_size_m / n_sub
+        sx = np.clip(np.floor((part["xyz"][:, 0] - t_x0) / size), 0, n_sub - 1).astype(int)
+        sy = np.clip(np.floor((part["xyz"][:, 1] - t_y0) / size), 0, n_sub - 1).astype(int)
+        sub = sx * n_sub + sy
+        order[begin:end] = np.argsort(sub, kind="stable")
+        offsets[row, 1:] = np.cumsum(np.bincount(sub, minlength=n_sub * n_sub))
+        begin = end
+    return {"tiles": tiles, "records": records, "order": order, "offsets": offsets}
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    n=st.integers(0, 400),
+    chunk=st.integers(1, 150),
+    tile=st.sampled_from([0.3, 1.0, 2.5]),
+    n_sub=st.integers(1, 6),
+    labels=st.booleans(),
+    drop=st.integers(0, 3),
+    seed=st.integers(0, 1000),
+)
+def test_store_arrays_equal_the_numpy_reference(
+    n: int, chunk: int, tile: float, n_sub: int, labels: bool, drop: int, seed: int
+) -> None:
+    rng = np.random.default_rng(seed)
+    cloud = PointCloud.from_arrays(
+        rng.uniform(-3.0, 3.0, (n, 3)),
+        intensity=rng.integers(-2048, 2047, n),
+        rgb=rng.integers(0, 256, (n, 3)),
+        labels=rng.integers(0, 9, n) if labels else None,
+    )
+    keep = rng.integers(0, 4, n) >= drop
+    grid = TileGrid.square(tile)
+    with TemporaryTileStore.writer(grid=grid, subdivisions=n_sub) as writer:
+        for start in range(0, n, chunk):
+            writer.add(cloud[start : start + chunk], keep=keep[start : start + chunk])
+        store = writer.close()
+    expected = _reference(cloud, keep, grid, n_sub)
+    assert list(store.tiles) == expected["tiles"]
+    assert store._points is not None and store._order is not None
+    assert store._points.tobytes() == expected["records"].tobytes()
+    np.testing.assert_array_equal(store._order, expected["order"])
+    np.testing.assert_array_equal(store._offsets, expected["offsets"])
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    n=st.sampled_from([50, 6000]),  # a small tile is filtered whole, a large one by sub-cells
+    box=st.tuples(*[st.floats(-1.5, 1.5)] * 4),
+    seed=st.integers(0, 100),
+)
+def test_box_selection_equals_a_boolean_mask(n: int, box: tuple, seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    cloud = PointCloud.from_arrays(rng.uniform(-1.0, 1.0, (n, 3)), labels=rng.integers(0, 9, n))
+    x0, y0 = min(box[0], box[2]), min(box[1], box[3])
+    x1, y1 = max(box[0], box[2]), max(box[1], box[3])
+    with TemporaryTileStore(
+        [cloud], grid=TileGrid.square(4.0, origin_xy=(-2.0, -2.0)), subdivisions=16
+    ) as store:
+        got = store.read_box((x0, y0, x1, y1))
+    x, y = cloud.xyz[:, 0], cloud.xyz[:, 1]
+    expected = np.flatnonzero((x >= x0) & (x <= x1) & (y >= y0) & (y <= y1))
+    np.testing.assert_array_equal(got.indices, expected)  # one tile: scan order
+    assert got.cloud.equals(cloud[expected])
+
+
+def test_rows_of_records_equal_numpy_columns() -> None:
+    rng = np.random.default_rng(3)
+    for labels in (True, False):
+        records = np.zeros(7, record_dtype(with_labels=labels))
+        records["xyz"] = rng.normal(size=(7, 3))
+        if labels:
+            records["labels"] = rng.integers(0, 9, 7)
+        rows = xyz_label_rows(TilePoints.from_records(records))
+        np.testing.assert_array_equal(rows[:, :3], records["xyz"])
+        np.testing.assert_array_equal(rows[:, 3], records["labels"] if labels else 0.0)
