@@ -20,38 +20,19 @@ import pytest
 
 from semantic3d.io import read_labels
 from semantic3d.labelling.session import LabelSession, open_label_session
+from tests.browsers import SOFTWARE_WEBGL_ARGS, chromium
 
 from .conftest import NODE_CAPACITY
 
 pytestmark = pytest.mark.slow
 
-CHROMIUM = Path("/usr/bin/chromium")
-CHROMIUM_ARGS = [
-    "--headless",
-    "--no-sandbox",
-    "--use-gl=angle",
-    "--use-angle=swiftshader",
-    "--enable-unsafe-swiftshader",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-]
 HALF_SQUARE_M = 12.0
 
 
 @pytest.fixture(scope="module")
 def browser():
-    sync_api = pytest.importorskip("playwright.sync_api")
-    if not CHROMIUM.exists():
-        pytest.skip("Debian's chromium is not installed at /usr/bin/chromium")
-    with sync_api.sync_playwright() as playwright:
-        browser = playwright.chromium.launch(
-            executable_path=str(CHROMIUM), headless=True, args=CHROMIUM_ARGS
-        )
-        try:
-            yield browser
-        finally:
-            browser.close()
+    with chromium(SOFTWARE_WEBGL_ARGS) as browser:
+        yield browser
 
 
 class _Server:

@@ -13,35 +13,18 @@ from pathlib import Path
 
 import pytest
 
+from tests.browsers import chromium
+
 from .conftest import ground_truth_arrays, noisy_predictions, submission_zip
 from .processes import ServerProcess, environment, run_command
 
 pytestmark = pytest.mark.slow
 
-CHROMIUM = Path("/usr/bin/chromium")
-CHROMIUM_ARGS = [
-    "--headless",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-]
-
 
 @pytest.fixture
 def browser():
-    sync_api = pytest.importorskip("playwright.sync_api")
-    if not CHROMIUM.exists():
-        pytest.skip("Debian's chromium is not installed at /usr/bin/chromium")
-    with sync_api.sync_playwright() as playwright:
-        browser = playwright.chromium.launch(
-            executable_path=str(CHROMIUM), headless=True, args=CHROMIUM_ARGS
-        )
-        try:
-            yield browser
-        finally:
-            browser.close()
+    with chromium(("--disable-gpu",)) as browser:
+        yield browser
 
 
 def test_register_submit_and_see_the_leaderboard(

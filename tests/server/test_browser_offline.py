@@ -13,10 +13,11 @@ from urllib.parse import urlsplit
 import pytest
 
 from semantic3d.evaluation import MethodInfo
+from tests.browsers import CHROMIUM
 
 from .conftest import ground_truth_arrays, noisy_predictions, submission_zip
 from .processes import ServerProcess, environment, run_command
-from .test_browser import CHROMIUM, browser  # noqa: F401  (the fixture)
+from .test_browser import browser  # noqa: F401  (the fixture)
 
 pytestmark = pytest.mark.slow
 

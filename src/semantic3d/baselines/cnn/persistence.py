@@ -17,15 +17,14 @@ from typing import IO, Any
 from semantic3d.baselines.cnn.config import CnnConfig, config_from_dict, config_to_dict
 from semantic3d.baselines.cnn.model import CnnModel
 from semantic3d.baselines.cnn.network import build_network, count_parameters
-from semantic3d.baselines.common.modelfile import ModelFileError, read_header, write_model_file
+from semantic3d.baselines.common.modelfile import ModelFileError, ModelFileFormat
 from semantic3d.core.errors import ConfigError, require
 
 torch: Any = require("torch", "torch")
 
 FORMAT = "semantic3d-cnn-model"
 FORMAT_VERSION = 1
-_MAGIC = b"S3DCNN1 "
-_KIND = "cnn model"
+_FILE = ModelFileFormat(magic=b"S3DCNN1 ", kind="cnn model", name=FORMAT, version=FORMAT_VERSION)
 
 __all__ = [
     "FORMAT",
@@ -40,8 +39,6 @@ __all__ = [
 def save_model(model: CnnModel, path: str | Path) -> Path:
     """Write ``model`` to ``path`` atomically (parent folders created); returns the path."""
     header = {
-        "format": FORMAT,
-        "format_version": FORMAT_VERSION,
         "package_version": model.package_version,
         "torch_version": str(torch.__version__),
         "created": datetime.now(UTC).isoformat(timespec="seconds"),
@@ -58,17 +55,12 @@ def save_model(model: CnnModel, path: str | Path) -> Path:
     def write(stream: IO[bytes]) -> None:
         torch.save(state, stream)
 
-    return write_model_file(path, magic=_MAGIC, header=header, write_payload=write)
+    return _FILE.write(path, header, write)
 
 
 def read_model_header(path: str | Path) -> dict[str, Any]:
     """The JSON header of a model file, checked, without loading the weights."""
-    path = Path(path)
-    try:
-        with path.open("rb") as stream:
-            return _read_header(stream, path)
-    except OSError as exc:
-        raise ModelFileError(f"{path}: cannot read the model: {exc.strerror}") from exc
+    return _FILE.read_header(path)
 
 
 def load_model(path: str | Path, *, device: str = "cpu") -> CnnModel:
@@ -79,19 +71,15 @@ def load_model(path: str | Path, *, device: str = "cpu") -> CnnModel:
             not fit the configuration in its header.
     """
     path = Path(path)
-    try:
-        with path.open("rb") as stream:
-            header = _read_header(stream, path)
-            try:
-                config: CnnConfig = config_from_dict(header["config"], source=str(path))
-            except (ConfigError, KeyError) as exc:
-                raise ModelFileError(f"{path}: corrupt model header: {exc}") from exc
-            try:
-                state = torch.load(stream, map_location="cpu", weights_only=True)
-            except Exception as exc:  # torch raises many kinds on a damaged payload
-                raise ModelFileError(f"{path}: corrupt model weights: {exc}") from exc
-    except OSError as exc:
-        raise ModelFileError(f"{path}: cannot read the model: {exc.strerror}") from exc
+    with _FILE.open(path) as (header, stream):
+        try:
+            config: CnnConfig = config_from_dict(header["config"], source=str(path))
+        except (ConfigError, KeyError) as exc:
+            raise ModelFileError(f"{path}: corrupt model header: {exc}") from exc
+        try:
+            state = torch.load(stream, map_location="cpu", weights_only=True)
+        except Exception as exc:  # torch raises many kinds on a damaged payload
+            raise ModelFileError(f"{path}: corrupt model weights: {exc}") from exc
     network = build_network(config.cubes, config.network)
     try:
         network.load_state_dict(state)
@@ -110,9 +98,3 @@ def load_model(path: str | Path, *, device: str = "cpu") -> CnnModel:
         package_version=str(header["package_version"]),
     )
     return model.to(device)
-
-
-def _read_header(stream: Any, path: Path) -> dict[str, Any]:
-    return read_header(
-        stream, path, magic=_MAGIC, kind=_KIND, file_format=FORMAT, version=FORMAT_VERSION
-    )

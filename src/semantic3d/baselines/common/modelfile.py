@@ -12,13 +12,23 @@ from __future__ import annotations
 
 import json
 import uuid
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
+from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, Any, TypeVar
 
-from semantic3d.core.errors import Semantic3DError
+from semantic3d.core.errors import Semantic3DError, require
 
-__all__ = ["ModelFileError", "check_versions", "read_header", "write_model_file"]
+__all__ = [
+    "ModelFileError",
+    "ModelFileFormat",
+    "check_versions",
+    "read_header",
+    "write_model_file",
+]
+
+_Model = TypeVar("_Model")
 
 _MAX_HEADER_BYTES = 1 << 20
 
@@ -98,3 +108,87 @@ def check_versions(
         raise ModelFileError(
             f"{path}: model written by {written}; this is {this}: retrain it ({retrain})"
         )
+
+
+@dataclass(frozen=True, slots=True)
+class ModelFileFormat:
+    """One baseline's kind of model file: its magic bytes, name and format version.
+
+    Each baseline's ``persistence`` module holds one of these and calls it to write its
+    files, read their headers and open them for loading; the checks and messages are the
+    same for every baseline.
+    """
+
+    magic: bytes
+    kind: str
+    """What the file holds, for messages ("covariance model")."""
+    name: str
+    """The header's ``format`` value."""
+    version: int
+    """The header's ``format_version``; files of another version are refused."""
+
+    def write(
+        self,
+        path: str | Path,
+        header: Mapping[str, Any],
+        write_payload: Callable[[IO[bytes]], None],
+    ) -> Path:
+        """Write the header (format and version first) and payload atomically."""
+        full = {"format": self.name, "format_version": self.version, **header}
+        return write_model_file(path, magic=self.magic, header=full, write_payload=write_payload)
+
+    def read_header(self, path: str | Path) -> dict[str, Any]:
+        """The checked JSON header of the file at ``path``, without loading the payload."""
+        with self.open(path) as (header, _):
+            return header
+
+    @contextmanager
+    def open(self, path: str | Path) -> Iterator[tuple[dict[str, Any], IO[bytes]]]:
+        """``(header, stream)``: the checked header, and the stream at the payload.
+
+        Raises:
+            ModelFileError: unreadable, another kind of file, another format or version.
+        """
+        path = Path(path)
+        try:
+            with path.open("rb") as stream:
+                header = read_header(
+                    stream,
+                    path,
+                    magic=self.magic,
+                    kind=self.kind,
+                    file_format=self.name,
+                    version=self.version,
+                )
+                yield header, stream
+        except OSError as exc:
+            raise ModelFileError(f"{path}: cannot read the model: {exc.strerror}") from exc
+
+    def load_joblib(
+        self, path: str | Path, *, payload_type: type[_Model], extra: str, retrain: str
+    ) -> _Model:
+        """Load a scikit-learn model written with a joblib payload.
+
+        The header must record this semantic3d's and this scikit-learn's versions (trees
+        pickled by another version are refused rather than trusted).
+        """
+        from semantic3d import __version__
+
+        joblib: Any = require("joblib", extra)
+        sklearn: Any = require("sklearn", extra)
+        with self.open(path) as (header, stream):
+            check_versions(
+                header,
+                Path(path),
+                expected={
+                    "package_version": ("semantic3d", __version__),
+                    "sklearn_version": ("scikit-learn", sklearn.__version__),
+                },
+                retrain=retrain,
+            )
+            model = joblib.load(stream)
+        if not isinstance(model, payload_type):
+            raise ModelFileError(
+                f"{path}: expected a {payload_type.__name__} payload, found {type(model).__name__}"
+            )
+        return model

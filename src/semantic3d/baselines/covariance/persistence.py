@@ -14,21 +14,16 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from semantic3d import __version__
-from semantic3d.baselines.common.modelfile import (
-    ModelFileError,
-    check_versions,
-    read_header,
-    write_model_file,
-)
+from semantic3d.baselines.common.modelfile import ModelFileError, ModelFileFormat
 from semantic3d.baselines.covariance.config import config_to_dict
 from semantic3d.baselines.covariance.model import CovarianceModel
 from semantic3d.core.errors import require
 
 FORMAT = "semantic3d-covariance-model"
 FORMAT_VERSION = 1
-_MAGIC = b"S3DCOV1 "
-_KIND = "covariance model"
+_FILE = ModelFileFormat(
+    magic=b"S3DCOV1 ", kind="covariance model", name=FORMAT, version=FORMAT_VERSION
+)
 _RETRAIN = "semantic3d baseline covariance train"
 
 __all__ = [
@@ -50,8 +45,6 @@ def save_model(model: CovarianceModel, path: str | Path) -> Path:
     joblib: Any = require("joblib", "ml")
     sklearn: Any = require("sklearn", "ml")
     header = {
-        "format": FORMAT,
-        "format_version": FORMAT_VERSION,
         "package_version": model.package_version,
         "sklearn_version": sklearn.__version__,
         "created": datetime.now(UTC).isoformat(timespec="seconds"),
@@ -64,22 +57,12 @@ def save_model(model: CovarianceModel, path: str | Path) -> Path:
         "training_time_s": model.training_time_s,
         "grid_search": None if model.grid_search is None else model.grid_search.to_dict(),
     }
-    return write_model_file(
-        path,
-        magic=_MAGIC,
-        header=header,
-        write_payload=lambda stream: joblib.dump(model, stream, compress=3),
-    )
+    return _FILE.write(path, header, lambda stream: joblib.dump(model, stream, compress=3))
 
 
 def read_model_header(path: str | Path) -> dict[str, Any]:
     """The JSON header of a model file, without loading the model."""
-    path = Path(path)
-    try:
-        with path.open("rb") as stream:
-            return _read_header(stream, path)
-    except OSError as exc:
-        raise ModelFileError(f"{path}: cannot read the model: {exc.strerror}") from exc
+    return _FILE.read_header(path)
 
 
 def load_model(path: str | Path) -> CovarianceModel:
@@ -89,32 +72,4 @@ def load_model(path: str | Path) -> CovarianceModel:
         ModelFileError: not a model file, or written by another package or scikit-learn
             version (retrain it with this version).
     """
-    joblib: Any = require("joblib", "ml")
-    sklearn: Any = require("sklearn", "ml")
-    path = Path(path)
-    try:
-        with path.open("rb") as stream:
-            header = _read_header(stream, path)
-            check_versions(
-                header,
-                path,
-                expected={
-                    "package_version": ("semantic3d", __version__),
-                    "sklearn_version": ("scikit-learn", sklearn.__version__),
-                },
-                retrain=_RETRAIN,
-            )
-            model = joblib.load(stream)
-    except OSError as exc:
-        raise ModelFileError(f"{path}: cannot read the model: {exc.strerror}") from exc
-    if not isinstance(model, CovarianceModel):
-        raise ModelFileError(
-            f"{path}: expected a CovarianceModel payload, found {type(model).__name__}"
-        )
-    return model
-
-
-def _read_header(stream: Any, path: Path) -> dict[str, Any]:
-    return read_header(
-        stream, path, magic=_MAGIC, kind=_KIND, file_format=FORMAT, version=FORMAT_VERSION
-    )
+    return _FILE.load_joblib(path, payload_type=CovarianceModel, extra="ml", retrain=_RETRAIN)
