@@ -279,3 +279,87 @@ def test_bad_crs_is_one_line(scan: Path, tmp_path: Path, args: list[str], messag
     lines = [line for line in result.stderr.splitlines() if line.strip()]
     assert len(lines) == 1 and message in lines[0]
     assert not (tmp_path / args[0]).exists()
+
+
+def test_many_sources_into_a_folder(scan: Path, tmp_path: Path) -> None:
+    other = tmp_path / "other.ply"
+    write_points(other, [random_cloud(700, seed=4)])
+    out = tmp_path / "out"
+    result = runner.invoke(
+        app, ["convert", str(scan), str(other), "--out", str(out), "--to", "txt"]
+    )
+    assert result.exit_code == 0, result.output
+    assert sorted(path.name for path in out.iterdir()) == [
+        "other.labels",
+        "other.txt",
+        "scan.labels",
+        "scan.txt",
+    ]
+    assert read_points(out / "scan.txt").equals(read_points(scan))
+    assert read_points(out / "other.txt").n_points == 700
+    assert f"wrote 2,500 points to {out / 'scan.txt'} and their labels" in result.stdout
+    before = (out / "scan.txt").read_bytes()
+    again = runner.invoke(app, ["convert", str(scan), str(other), "--out", str(out), "--to", "txt"])
+    assert again.exit_code == 2
+    assert "already exists (and 3 other outputs); pass --overwrite" in again.stderr
+    assert (out / "scan.txt").read_bytes() == before
+
+
+@pytest.mark.parametrize(
+    ("make_args", "message"),
+    [
+        (lambda d: ["convert", str(d / "scan.txt")], "expected SOURCE DESTINATION, or SOURCE..."),
+        (
+            lambda d: ["convert", str(d / "scan.txt"), str(d / "a.las"), str(d / "b.las")],
+            "found 3 paths and no --out",
+        ),
+        (lambda d: ["convert", str(d / "scan.txt"), "--out", str(d / "o")], "--to: expected one"),
+        (
+            lambda d: ["convert", str(d / "scan.txt"), "--out", str(d / "o"), "--to", "csv"],
+            "--to: expected one of txt, xyz, las, laz, ply, cache, found 'csv'",
+        ),
+        (
+            lambda d: ["convert", str(d / "scan.txt"), str(d / "a.las"), "--to", "ply"],
+            "--to applies with --out DIR",
+        ),
+        (
+            lambda d: [
+                "convert",
+                str(d / "scan.txt"),
+                str(d / "scan.ply"),
+                "--out",
+                str(d / "o"),
+                "--to",
+                "las",
+            ],
+            "scan.las: the output of both",
+        ),
+        (
+            lambda d: ["convert", str(d / "gone.txt"), "--out", str(d / "o"), "--to", "las"],
+            "gone.txt: expected a point file or cache folder, found nothing",
+        ),
+        (
+            lambda d: [
+                "convert",
+                str(d / "scan.txt"),
+                str(d / "other.ply"),
+                "--out",
+                str(d / "o"),
+                "--to",
+                "las",
+                "--labels",
+                str(d / "scan.labels"),
+            ],
+            "--labels applies to one source converted in this process",
+        ),
+    ],
+)
+def test_bad_many_file_forms_are_one_line(
+    scan: Path, tmp_path: Path, make_args: Callable[[Path], list[str]], message: str
+) -> None:
+    for name in ("scan.ply", "other.ply"):
+        write_points(tmp_path / name, [random_cloud(10, seed=1)])
+    result = runner.invoke(app, make_args(tmp_path))
+    assert result.exit_code == 2, result.output
+    assert message in result.stderr
+    assert not (tmp_path / "o").exists()

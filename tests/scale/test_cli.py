@@ -29,7 +29,9 @@ def _truth_and_prediction(scan_dir: Path, tmp_path: Path) -> tuple[Path, Path]:
     return truth, pred
 
 
-def test_evaluate_with_one_local_worker(scan_dir: Path, tmp_path: Path) -> None:
+def test_evaluate_on_a_running_scheduler(
+    cluster: DaskCluster, scan_dir: Path, tmp_path: Path
+) -> None:
     truth, pred = _truth_and_prediction(scan_dir, tmp_path)
     plain = runner.invoke(
         app, ["evaluate", "--gt", str(truth), "--pred", str(pred), "--json", str(tmp_path / "a")]
@@ -45,12 +47,12 @@ def test_evaluate_with_one_local_worker(scan_dir: Path, tmp_path: Path) -> None:
             str(pred),
             "--json",
             str(tmp_path / "b"),
-            "--workers",
-            "1",
+            "--scheduler",
+            cluster.client.scheduler.address,
         ],
     )
     assert local.exit_code == 0, local.output
-    assert "dashboard http" in local.output
+    assert f"Dask: {cluster.client.scheduler.address}, dashboard http" in local.output
     assert (tmp_path / "a").read_bytes() == (tmp_path / "b").read_bytes()
     assert json.loads((tmp_path / "b").read_text())["n_points"] > 0
 

@@ -141,4 +141,4 @@ def test_cluster_spec_rejects_bad_settings(kwargs: dict[str, object], message: s
 
 def test_unreachable_scheduler_is_named() -> None:
     with pytest.raises(ClusterError, match=r"tcp://127\.0\.0\.1:9: expected a Dask scheduler"):
-        connect(ClusterSpec(scheduler="tcp://127.0.0.1:9", timeout_s=1))
+        connect(ClusterSpec(scheduler="tcp://127.0.0.1:9", timeout_s=0.3))

@@ -21,7 +21,7 @@ if TYPE_CHECKING:
     from semantic3d.scale.cluster import DaskCluster
 
 SCHEDULER_HELP = (
-    "Run on the Dask cluster of this scheduler (tcp://HOST:8786); inputs and scratch "
+    "Run on the Dask cluster of this scheduler (tcp://HOST:8786); inputs, outputs and scratch "
     "folders must be visible to its workers at the same paths (extra: dask)."
 )
 WORKERS_HELP = "Run on this many local Dask worker processes, started for the command."

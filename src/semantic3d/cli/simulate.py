@@ -12,6 +12,7 @@ from pathlib import Path
 import typer
 
 from semantic3d.cli import console as ui
+from semantic3d.cli.cluster import open_cluster, scheduler_option, workers_option
 from semantic3d.cli.console import guarded, progress_bar, refuse_existing
 
 #: The simulator's scene names and station limit, repeated so that building the app does
@@ -42,8 +43,13 @@ def simulate_command(
     overwrite: bool = typer.Option(
         False, "--overwrite", help="Replace files of an earlier simulation in OUT."
     ),
+    scheduler: str | None = scheduler_option(),
+    workers: int | None = workers_option(),
 ) -> None:
-    """Simulate static laser scans: NAME_stationK.txt + .labels per station and NAME.json."""
+    """Simulate static laser scans: NAME_stationK.txt + .labels per station and NAME.json.
+
+    With --scheduler or --workers each station is a Dask task (the same files as without).
+    """
     with guarded():
         from semantic3d.datasets.simulator import simulate
         from semantic3d.datasets.simulator.scanner import validate_n_points
@@ -63,22 +69,37 @@ def simulate_command(
             overwrite=overwrite,
         )
         prepare_output_folder(out)
-        with progress_bar() as bar:
-            task = bar.add_task(f"scanning {scene_name.value}", total=None)
+        with open_cluster(scheduler, workers) as cluster, progress_bar() as bar:
+            if cluster is None:
+                task = bar.add_task(f"scanning {scene_name.value}", total=None)
 
-            def progress(done: int, total: int) -> None:
-                bar.update(task, completed=done, total=max(total, done))
+                def progress(done: int, total: int) -> None:
+                    bar.update(task, completed=done, total=max(total, done))
 
-            result = simulate(
-                scene_name,
-                out=out,
-                n_points=points,
-                stations=stations,
-                seed=seed,
-                chunk_size=chunk_size,
-                progress=progress,
-            )
-            bar.update(task, completed=result.n_points, total=result.n_points)
+                result = simulate(
+                    scene_name,
+                    out=out,
+                    n_points=points,
+                    stations=stations,
+                    seed=seed,
+                    chunk_size=chunk_size,
+                    progress=progress,
+                )
+                bar.update(task, completed=result.n_points, total=result.n_points)
+            else:
+                from semantic3d.scale.simulate import simulate_on_cluster
+
+                task = bar.add_task(f"scanning {scene_name.value} (stations)", total=stations)
+                result = simulate_on_cluster(
+                    scene_name,
+                    out=out,
+                    n_points=points,
+                    cluster=cluster,
+                    stations=stations,
+                    seed=seed,
+                    chunk_size=chunk_size,
+                    progress=lambda done, total: bar.update(task, completed=done),
+                )
     from rich.table import Table
 
     from semantic3d.core.classes import CLASSES

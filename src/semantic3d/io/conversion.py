@@ -1,4 +1,4 @@
-"""Converting a point file of any format into the binary cache, once.
+"""Converting point files: into the binary cache once, or between any two formats.
 
 Kept apart from :mod:`semantic3d.io.cache` (the cache format itself) because it reads
 through :func:`semantic3d.io.formats.iter_points`, which itself reads caches: the format
@@ -8,9 +8,11 @@ modules import the cache, never the other way round.
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
+from semantic3d.core.pointcloud import PointCloud
 from semantic3d.io.cache import (
     CachedScan,
     SourceInfo,
@@ -19,9 +21,9 @@ from semantic3d.io.cache import (
     open_cache_writer,
 )
 from semantic3d.io.chunks import DEFAULT_CHUNK_SIZE
-from semantic3d.io.formats import estimate_point_count, iter_points
+from semantic3d.io.formats import estimate_point_count, iter_points, write_points
 
-__all__ = ["build_cache"]
+__all__ = ["ConvertedFile", "build_cache", "convert_file"]
 
 logger = logging.getLogger(__name__)
 
@@ -60,3 +62,53 @@ def build_cache(
         progress(writer.n_points, writer.n_points)
     logger.info("%s: cached %d points from %s", cache_path, writer.n_points, points_path)
     return open_cache(cache_path)
+
+
+@dataclass(frozen=True, slots=True)
+class ConvertedFile:
+    """What :func:`convert_file` wrote."""
+
+    source: Path
+    destination: Path
+    n_points: int
+    labelled: bool
+    """Whether the points carried labels (ASCII output: written to ``NAME.labels``)."""
+
+
+def convert_file(
+    source: str | Path,
+    destination: str | Path,
+    *,
+    labels_path: str | Path | None = None,
+    chunk_size: int = DEFAULT_CHUNK_SIZE,
+    crs: object = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> ConvertedFile:
+    """Convert one point file into the format of ``destination``'s suffix, streaming.
+
+    The output is staged under a hidden name and renamed when complete (see
+    :func:`semantic3d.io.formats.write_points`); a missing output folder is created.
+    ``progress(done_points, total_points)`` is called after each chunk (the total is an
+    estimate for ASCII input). Same input, same bytes, in any process.
+    """
+    source, destination = Path(source), Path(destination)
+    total = estimate_point_count(source).n_points if progress is not None else 0
+    labelled = False
+
+    def counted() -> Iterator[PointCloud]:
+        nonlocal labelled, total
+        done = 0
+        for chunk in iter_points(source, chunk_size=chunk_size, labels_path=labels_path):
+            labelled = labelled or chunk.labels is not None
+            yield chunk
+            done += chunk.n_points
+            if progress is not None:
+                total = max(total, done)
+                progress(done, total)
+
+    destination.parent.mkdir(parents=True, exist_ok=True)
+    n_points = write_points(destination, counted(), crs=crs)
+    if progress is not None:
+        progress(n_points, n_points)
+    logger.info("%s: wrote %d points from %s", destination, n_points, source)
+    return ConvertedFile(source, destination, n_points, labelled)

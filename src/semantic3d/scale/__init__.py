@@ -15,6 +15,7 @@ from semantic3d.core.lazy import lazy_exports
 
 if TYPE_CHECKING:
     from semantic3d.scale.cluster import ClusterError, ClusterSpec, DaskCluster, connect
+    from semantic3d.scale.convert import convert_files_on_cluster
     from semantic3d.scale.evaluation import (
         compute_label_agreement_on_cluster,
         evaluate_submission_on_cluster,
@@ -24,6 +25,7 @@ if TYPE_CHECKING:
         predict_scan_on_cluster,
         predict_scans_on_cluster,
     )
+    from semantic3d.scale.simulate import simulate_on_cluster
 
 __all__ = [
     "ClusterError",
@@ -32,9 +34,11 @@ __all__ = [
     "DaskCluster",
     "compute_label_agreement_on_cluster",
     "connect",
+    "convert_files_on_cluster",
     "evaluate_submission_on_cluster",
     "predict_scan_on_cluster",
     "predict_scans_on_cluster",
+    "simulate_on_cluster",
 ]
 
 __getattr__, __dir__ = lazy_exports(
@@ -49,5 +53,7 @@ __getattr__, __dir__ = lazy_exports(
         "ClusterPredictor": "semantic3d.scale.predict",
         "predict_scan_on_cluster": "semantic3d.scale.predict",
         "predict_scans_on_cluster": "semantic3d.scale.predict",
+        "convert_files_on_cluster": "semantic3d.scale.convert",
+        "simulate_on_cluster": "semantic3d.scale.simulate",
     },
 )

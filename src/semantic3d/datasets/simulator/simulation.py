@@ -128,8 +128,62 @@ def simulate(
     result = SimulationResult(
         built.name, int(seed), n_points, scanner, tuple(scans), out / f"{built.name}.json"
     )
-    result.sidecar_path.write_text(json.dumps(sidecar(result), indent=2) + "\n")
+    write_sidecar(result)
     return result
+
+
+def simulate_station(
+    scene: SceneName | str,
+    station: int,
+    *,
+    out: Path,
+    n_points: int,
+    seed: int = 0,
+    scanner: Scanner = Scanner(),
+    chunk_size: int = DEFAULT_CHUNK_SIZE,
+    progress: Callable[[int, int], None] | None = None,
+) -> StationScan:
+    """Scan the default ``scene`` of ``seed`` from its station number ``station`` (from 1).
+
+    The files are those :func:`simulate` writes for that station, byte for byte: a task
+    of its own (e.g. on a cluster worker). :func:`write_sidecar` then writes the sidecar
+    of the :class:`SimulationResult` gathered from the stations.
+    """
+    n_points = validate_n_points(n_points)
+    station = validate_stations(station)
+    try:
+        chunk_size = validate_chunk_size(chunk_size)
+    except ValueError as exc:
+        raise SimulationConfigError(str(exc)) from None
+    built = build_scene(scene, seed=seed)
+    if station > len(built.stations):
+        raise SimulationConfigError(
+            f"stations: scene {built.name!r} has {len(built.stations)}, found {station}"
+        )
+    out = Path(out)
+    compiled = compile_scene(built)
+    chosen = built.stations[station - 1]
+    plan = plan_scan(compiled, chosen, n_points=n_points, scanner=scanner, seed=seed)
+    scan = _write_station(
+        compiled,
+        chosen,
+        plan,
+        out,
+        seed=seed,
+        scanner=scanner,
+        chunk_size=chunk_size,
+        progress=progress,
+        done=0,
+        expected=plan.expected_points,
+    )
+    logger.info("%s: %d points", scan.points_path, scan.n_points)
+    return scan
+
+
+def write_sidecar(result: SimulationResult) -> Path:
+    """Write ``result``'s JSON sidecar to ``result.sidecar_path``; return that path."""
+    result.sidecar_path.write_text(json.dumps(sidecar(result), indent=2) + "\n")
+    return result.sidecar_path
 
 
 def sidecar(result: SimulationResult) -> dict[str, object]:
