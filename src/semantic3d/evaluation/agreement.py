@@ -366,6 +366,7 @@ def compute_label_agreement_files(
     spill_directory: Path | None = None,
     progress: AgreementProgress | None = None,
     exclude_before_matching: bool = False,
+    map_tiles: TileMapper | None = None,
 ) -> AgreementResult:
     """:func:`compute_label_agreement` on two scans on disk (any format ``io`` reads)."""
     from semantic3d.io.formats import iter_points
@@ -379,4 +380,5 @@ def compute_label_agreement_files(
         spill_directory=spill_directory,
         progress=progress,
         exclude_before_matching=exclude_before_matching,
+        map_tiles=map_tiles,
     )

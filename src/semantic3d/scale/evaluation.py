@@ -18,7 +18,7 @@ from semantic3d.evaluation.agreement import (
     DEFAULT_TILE_SIZE_M,
     AgreementProgress,
     AgreementResult,
-    compute_label_agreement,
+    compute_label_agreement_files,
 )
 from semantic3d.evaluation.challenge import Challenge
 from semantic3d.evaluation.contents import SubmissionLimits
@@ -74,11 +74,11 @@ def compute_label_agreement_on_cluster(
     The scans are read here and binned into two tile stores under ``spill_directory``
     (the system's temporary folder by default), which the workers must see.
     """
-    from semantic3d.io.formats import iter_points
-
-    return compute_label_agreement(
-        iter_points(a_points, labels_path=a_labels),
-        iter_points(b_points, labels_path=b_labels),
+    return compute_label_agreement_files(
+        a_points,
+        a_labels,
+        b_points,
+        b_labels,
         max_distance_m=max_distance_m,
         tile_size_m=tile_size_m,
         buffer_points=buffer_points,
