@@ -18,9 +18,27 @@ Levers (``--levers``, comma separated; default all):
 - ``more-points``: 3x the points per class;
 - ``weights``: a uniform sample of the same size, balanced by class weights instead;
 - ``hgb``: scikit-learn's HistGradientBoostingClassifier instead of the forest;
-- ``smooth``: class probabilities averaged with the mean of their level-3 pyramid voxel;
+- ``smooth``: class probabilities mixed with the mean of their level-3 pyramid voxel;
 - ``jakteristics``: the peer pipeline (jakteristics' 27 features at 4 radii + z above the
-  scan's lowest point + a scikit-learn forest), test points subsampled 1 in 5.
+  scan's lowest point + a scikit-learn forest), test points subsampled 1 in 5;
+- ``default``: the library default features (k-NN height + ``cylinder_below``), and on
+  them: ``default-smooth-3`` / ``-2-4`` / ``-4-6`` (probabilities mixed with their voxel
+  means at those levels), ``default-crf`` (alpha-expansion of a Potts energy on the 8
+  nearest level-0 voxels, 3 sweeps; ``-1sweep``: 1, as the library; ``-wide``: weights
+  2 to 32; ``-4``: weight 4 fixed), ``default-smooth-crf`` (levels 4-6 smoothing, then
+  the graph cut), ``lgbm`` / ``lgbm-crf`` (LightGBM), ``hgb-es``
+  (HistGradientBoosting), ``scan-norm`` (every column standardised per scan),
+  ``default-dtm`` (+ height above a terrain model), ``no-scale-columns`` (without the
+  columns measured in metres: sum of eigenvalues, moments, k-NN z-range and height above).
+
+Nothing is tuned on a fold's test scans: where a lever has a free weight (smoothing,
+Potts) or a number of boosting rounds (early stopping on log-loss), it is chosen per
+fold on an *inner split* of the fold's training scans (a model fitted on 6 of them
+labels the other 2), then the model is refitted on all 8. Levers that differ only in the
+context step share their models (one run scores them all on the same predictions).
+
+``--cost`` instead times end-to-end prediction with the library's context step off and
+on (``benchmarks/out/context_cost.json``).
 
 Keep runs small on a shared machine: ``--points-per-class`` and ``--trees`` set the size.
 Usage: ``python benchmarks/cv_covariance.py --levers cylinders,hgb --seeds 0,1,2``.
@@ -41,6 +59,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from semantic3d.baselines.covariance.context import (
+    alpha_expansion,
+    knn_edges,
+    smooth_probabilities,
+    unary_costs,
+)
 from semantic3d.baselines.covariance.estimator import CovarianceClassifier
 from semantic3d.core import CLASSES, PointCloud
 from semantic3d.features import FeatureConfig, build_cloud_pyramid, compute_multiscale_features
@@ -57,6 +81,12 @@ CYLINDERS = dataclasses.replace(
     KNN_HEIGHT, cylinders=True, spherical_height=True, cylinder_features=CYLINDER_FEATURES
 )
 CYLINDERS_ONLY = dataclasses.replace(CYLINDERS, spherical_height=False)
+DEFAULT = FeatureConfig()  # k-NN height + cylinder_below (the library default)
+
+SMOOTH_WEIGHTS = (0.0, 0.25, 0.5, 0.75, 0.9)
+"""Mixing weights of ``smooth`` levers, chosen per fold on the inner split."""
+POTTS_WEIGHTS = (0.0, 0.5, 1.0, 2.0, 4.0, 8.0)
+"""Pairwise weights of ``crf`` levers, chosen per fold on the inner split."""
 
 
 @dataclass(frozen=True)
@@ -68,10 +98,25 @@ class Lever:
     sampling: str = "balanced"  # balanced | weights
     points_factor: float = 1.0
     dtm: bool = False
-    smooth_level: int | None = None
     trees: int | None = None  # None: --trees
     max_depth: int | None = 20
     drop: tuple[str, ...] = ()  # feature names (any level) left out of the classifier
+    post: str = "none"  # none | smooth | crf | smooth-crf: context on the probabilities
+    sweeps: int = 3  # alpha-expansion passes over the classes
+    smooth_weight: float = 0.75  # fixed smoothing weight of `smooth-crf`
+    weights: tuple[float, ...] = ()  # the context weights to choose from (default grid)
+    smooth_levels: tuple[int, ...] = ()  # levels whose voxel means `smooth` mixes in
+    scan_norm: bool = False  # standardise every column per scan (mean 0, std 1)
+    exclude: tuple[str, ...] = ()  # feature names (any level) dropped by prefix match
+
+    @property
+    def training_key(self) -> tuple[Any, ...]:
+        """Levers with equal keys share their models (they differ only in `post`)."""
+        return dataclasses.astuple(
+            dataclasses.replace(
+                self, post="none", smooth_levels=(), sweeps=3, smooth_weight=0.75, weights=()
+            )
+        )
 
 
 LEVERS: dict[str, Lever] = {
@@ -82,13 +127,39 @@ LEVERS: dict[str, Lever] = {
     "more-points": Lever(CYLINDERS, points_factor=3.0),
     "weights": Lever(CYLINDERS, sampling="weights"),
     "hgb": Lever(CYLINDERS, classifier="hgb"),
-    "smooth": Lever(CYLINDERS, smooth_level=3),
+    "smooth": Lever(CYLINDERS, post="smooth", smooth_levels=(3,)),
     "jakteristics": Lever(None),
     "radius-4": Lever(dataclasses.replace(CYLINDERS, cylinder_radius_voxels=4.0)),
     "hgb-weights": Lever(CYLINDERS, classifier="hgb", sampling="weights"),
     "forest-100": Lever(CYLINDERS, trees=100, max_depth=None),
     "cylinders-below": Lever(
         CYLINDERS, drop=("cylinder_range", "cylinder_above", "cylinder_points")
+    ),
+    # On the default feature set (k-NN height + cylinder_below); inner-split selection.
+    "default": Lever(DEFAULT),
+    "default-smooth-3": Lever(DEFAULT, post="smooth", smooth_levels=(3,)),
+    "default-smooth-2-4": Lever(DEFAULT, post="smooth", smooth_levels=(2, 3, 4)),
+    "default-smooth-4-6": Lever(DEFAULT, post="smooth", smooth_levels=(4, 5, 6)),
+    "default-crf": Lever(DEFAULT, post="crf"),
+    "default-crf-1sweep": Lever(DEFAULT, post="crf", sweeps=1),
+    "default-crf-wide": Lever(DEFAULT, post="crf", sweeps=1, weights=(2.0, 4.0, 8.0, 16.0, 32.0)),
+    "default-crf-4": Lever(DEFAULT, post="crf", sweeps=1, weights=(4.0,)),
+    "default-smooth-crf": Lever(DEFAULT, post="smooth-crf", smooth_levels=(4, 5, 6)),
+    "lgbm": Lever(DEFAULT, classifier="lgbm"),
+    "lgbm-crf": Lever(DEFAULT, classifier="lgbm", post="crf", sweeps=1),
+    "scan-norm-crf": Lever(DEFAULT, scan_norm=True, post="crf", sweeps=1),
+    "default-dtm-crf": Lever(DEFAULT, dtm=True, post="crf", sweeps=1),
+    "no-scale-columns-crf": Lever(
+        DEFAULT,
+        exclude=("sum_of_eigenvalues", "moment", "vertical_range", "height_above"),
+        post="crf",
+        sweeps=1,
+    ),
+    "hgb-es": Lever(DEFAULT, classifier="hgb-es"),
+    "scan-norm": Lever(DEFAULT, scan_norm=True),
+    "default-dtm": Lever(DEFAULT, dtm=True),
+    "no-scale-columns": Lever(
+        DEFAULT, exclude=("sum_of_eigenvalues", "moment", "vertical_range", "height_above")
     ),
 }
 
@@ -144,16 +215,37 @@ def our_rows(scan: Scan, lever: Lever) -> tuple[ScanRows, float]:
     started = time.perf_counter()
     table = compute_multiscale_features(scan.cloud, config=lever.features)
     values = table.values
-    ancestors: dict[int, NDArray[np.int64]] = {}
-    if lever.dtm or lever.smooth_level is not None:
+    if lever.dtm:
         pyramid = build_cloud_pyramid(scan.cloud, config=lever.features)
-        if lever.dtm:
-            voxels = pyramid.levels[0].xyz + pyramid.origin
-            extra = terrain_height(scan.cloud.xyz, voxels)[:, None]
-            values = np.hstack([values, extra])
-        if lever.smooth_level is not None:
-            ancestors[lever.smooth_level] = pyramid.ancestors(lever.smooth_level)
-    return ScanRows(values, table.point_row, ancestors), time.perf_counter() - started
+        voxels = pyramid.levels[0].xyz + pyramid.origin
+        extra = terrain_height(scan.cloud.xyz, voxels)[:, None]
+        values = np.hstack([values, extra])
+    if lever.scan_norm:
+        spread = values.std(axis=0)
+        values = ((values - values.mean(axis=0)) / np.where(spread > 0, spread, 1)).astype(
+            np.float32
+        )
+    return ScanRows(values, table.point_row, {}), time.perf_counter() - started
+
+
+_CONTEXT: dict[tuple[str, int], Any] = {}
+
+
+def ancestors_of(scan: Scan, features: FeatureConfig, level: int) -> NDArray[np.int64]:
+    key = (scan.name, level)
+    if key not in _CONTEXT:
+        _CONTEXT[key] = build_cloud_pyramid(scan.cloud, config=features).ancestors(level)
+    result: NDArray[np.int64] = _CONTEXT[key]
+    return result
+
+
+def edges_of(scan: Scan, features: FeatureConfig) -> NDArray[np.int64]:
+    key = (scan.name, -1)
+    if key not in _CONTEXT:
+        xyz = build_cloud_pyramid(scan.cloud, config=features).levels[0].xyz
+        _CONTEXT[key] = knn_edges(xyz, k=8)
+    result: NDArray[np.int64] = _CONTEXT[key]
+    return result
 
 
 JAK_RADII = (0.25, 0.5, 1.0, 2.0)
@@ -195,13 +287,43 @@ def draw_training(
     return {i: np.sort(offset[picks[owner[picks] == i]]) for i in train}
 
 
-def make_classifier(lever: Lever, trees: int, seed: int) -> Any:
+def make_classifier(lever: Lever, trees: int, seed: int, n_iter: int | None = None) -> Any:
     weight = "balanced" if lever.sampling == "weights" else None
     if lever.classifier == "hgb":
         from sklearn.ensemble import HistGradientBoostingClassifier
 
         return HistGradientBoostingClassifier(
             max_iter=200, learning_rate=0.1, class_weight=weight, random_state=seed
+        )
+    if lever.classifier == "hgb-es":
+        from sklearn.ensemble import HistGradientBoostingClassifier
+
+        return HistGradientBoostingClassifier(
+            max_iter=n_iter or BOOST_MAX_ITER,
+            learning_rate=0.1,
+            max_leaf_nodes=31,
+            min_samples_leaf=20,
+            l2_regularization=1.0,
+            early_stopping=False,
+            class_weight="balanced",
+            random_state=seed,
+        )
+    if lever.classifier == "lgbm":
+        import lightgbm
+
+        return lightgbm.LGBMClassifier(
+            n_estimators=n_iter or BOOST_MAX_ITER,
+            learning_rate=0.1,
+            num_leaves=31,
+            min_child_samples=20,
+            subsample=0.8,
+            subsample_freq=1,
+            colsample_bytree=0.5,
+            reg_lambda=1.0,
+            class_weight="balanced",
+            n_jobs=2,
+            random_state=seed,
+            verbose=-1,
         )
     return CovarianceClassifier(
         n_estimators=lever.trees or trees,
@@ -212,23 +334,67 @@ def make_classifier(lever: Lever, trees: int, seed: int) -> Any:
     )
 
 
-def smooth(
-    proba: NDArray[np.float64], ancestor: NDArray[np.int64], weight: float = 0.5
-) -> NDArray[np.float64]:
-    """Mix each row's probabilities with the mean over its pyramid voxel at a coarser level."""
-    count = np.bincount(ancestor).astype(np.float64)
-    means = (
-        np.stack(
-            [
-                np.bincount(ancestor, proba[:, c], minlength=count.size)
-                for c in range(proba.shape[1])
-            ],
-            axis=1,
+BOOST_MAX_ITER = 400
+"""Most boosting rounds; early stopping on the inner split picks fewer."""
+
+
+def best_iteration(
+    lever: Lever, trees: int, seed: int, x: Any, y: Any, x_val: Any, y_val: Any
+) -> tuple[Any, int]:
+    """Fit a booster on the inner training scans; the round with the lowest log-loss on the
+    inner validation scans (patience 30 for LightGBM, the whole path for scikit-learn)."""
+    from sklearn.metrics import log_loss
+
+    model = make_classifier(lever, trees, seed)
+    if lever.classifier == "lgbm":
+        import lightgbm
+
+        model.fit(
+            x,
+            y,
+            eval_set=[(x_val, y_val)],
+            callbacks=[lightgbm.early_stopping(30, verbose=False)],
         )
-        / np.maximum(count, 1)[:, None]
+        return model, max(1, int(model.best_iteration_ or BOOST_MAX_ITER))
+    model.fit(x, y)
+    losses = [log_loss(y_val, p, labels=model.classes_) for p in model.staged_predict_proba(x_val)]
+    return model, int(np.argmin(losses)) + 1
+
+
+def scores_of(truth: list[NDArray[np.uint8]], predicted: list[NDArray[np.uint8]]) -> Any:
+    matrix = ConfusionMatrix()
+    for t, p in zip(truth, predicted, strict=True):
+        matrix.update(t, p)
+    return matrix.compute_scores()
+
+
+def apply_post(
+    scan: Scan, lever: Lever, proba: NDArray[np.float64], weight: float
+) -> NDArray[np.int64]:
+    """Column indices of every row after the lever's context step."""
+    assert lever.features is not None
+    if lever.post == "smooth" and weight > 0:
+        levels = [ancestors_of(scan, lever.features, level) for level in lever.smooth_levels]
+        proba = smooth_probabilities(proba, levels, weight=weight)
+    if lever.post == "smooth-crf":
+        levels = [ancestors_of(scan, lever.features, level) for level in lever.smooth_levels]
+        proba = smooth_probabilities(proba, levels, weight=lever.smooth_weight)
+    if lever.post in ("crf", "smooth-crf") and weight > 0:
+        return alpha_expansion(
+            unary_costs(proba),
+            edges_of(scan, lever.features),
+            weight=weight,
+            max_sweeps=lever.sweeps,
+        )
+    return np.argmax(proba, axis=1)
+
+
+def post_weights(lever: Lever) -> tuple[float, ...]:
+    if lever.weights:
+        return lever.weights
+    return {"smooth": SMOOTH_WEIGHTS, "crf": POTTS_WEIGHTS, "smooth-crf": POTTS_WEIGHTS}.get(
+        lever.post, (0.0,)
     )
-    result: NDArray[np.float64] = (1 - weight) * proba + weight * means[ancestor]
-    return result
 
 
 _ROWS: dict[Any, tuple[list[ScanRows], float]] = {}
@@ -237,33 +403,47 @@ _ROWS: dict[Any, tuple[list[ScanRows], float]] = {}
 
 def cross_validate(
     scans: list[Scan],
-    name: str,
-    lever: Lever,
+    group: list[tuple[str, Lever]],
     *,
     seeds: list[int],
     per_class: int,
     trees: int,
     n_folds: int,
-) -> dict[str, Any]:
+) -> dict[str, dict[str, Any]]:
+    """Cross-validate levers that share their training (differing only in ``post``)."""
+    lever = group[0][1]
     rows: list[ScanRows] = []
     feature_s = 0.0
     if lever.features is not None:
-        key = (lever.features, lever.dtm, lever.smooth_level)
+        key = (lever.features, lever.dtm, lever.scan_norm)
         if key not in _ROWS:
             _ROWS.clear()  # one feature set held at a time
             timed = [our_rows(scan, lever) for scan in scans]
             _ROWS[key] = ([r for r, _ in timed], sum(t for _, t in timed))
         rows, feature_s = _ROWS[key]
-        if lever.drop:
-            names = lever.features.feature_names
-            keep = [i for i, n in enumerate(names) if n.split("@")[0] not in lever.drop]
+        dropped = lever.drop + lever.exclude
+        if dropped:
+            names = list(lever.features.feature_names)
+            keep = [
+                i
+                for i, n in enumerate(names)
+                if n.split("@")[0] not in lever.drop
+                and not n.split("@")[0].startswith(lever.exclude or ("\0",))
+            ]
             rows = [ScanRows(r.values[:, keep], r.point_row, r.ancestors) for r in rows]
+    needs_inner = lever.classifier in ("lgbm", "hgb-es") or any(
+        len(post_weights(lv)) > 1 for _, lv in group
+    )
     n_points = sum(s.labels.size for s in scans)
-    miou, oa, ious, fit_s = [], [], [], 0.0
+    per_lever: dict[str, dict[str, Any]] = {
+        name: {"miou": [], "oa": [], "iou": [], "post_s": 0.0, "chosen": []} for name, _ in group
+    }
+    fit_s, predict_s, rounds = 0.0, 0.0, []
     for seed in seeds:
         rng = np.random.default_rng(seed)
         order = rng.permutation(len(scans))
-        matrix = ConfusionMatrix()
+        truth: list[NDArray[np.uint8]] = []
+        predicted: dict[str, list[NDArray[np.uint8]]] = {name: [] for name, _ in group}
         for fold in range(n_folds):
             test = [int(i) for i in order[fold::n_folds]]
             train = [i for i in range(len(scans)) if i not in test]
@@ -273,38 +453,154 @@ def cross_validate(
             else:
                 x = np.vstack([rows[i].values[rows[i].point_row[p]] for i, p in drawn.items()])
             y = np.concatenate([scans[i].labels[p] for i, p in drawn.items()])
+            owner = np.concatenate([np.full(p.size, i) for i, p in drawn.items()])
+            chosen_weight = {name: post_weights(lv)[0] for name, lv in group}
+            n_iter = None
             started = time.perf_counter()
-            model = make_classifier(lever, trees, seed).fit(x, y)
+            if needs_inner:
+                # Inner split: 2 of the training scans validate; never the fold's test scans.
+                inner_rng = np.random.default_rng([seed, fold, 7])
+                inner_val = [int(i) for i in inner_rng.choice(train, size=2, replace=False)]
+                inside = ~np.isin(owner, inner_val)
+                if lever.classifier in ("lgbm", "hgb-es"):
+                    inner, n_iter = best_iteration(
+                        lever, trees, seed, x[inside], y[inside], x[~inside], y[~inside]
+                    )
+                    rounds.append(n_iter)
+                else:
+                    inner = make_classifier(lever, trees, seed).fit(x[inside], y[inside])
+                classes = np.asarray(inner.classes_, dtype=np.uint8)
+                inner_proba = {i: inner.predict_proba(rows[i].values) for i in inner_val}
+                for name, lv in group:
+                    weights = post_weights(lv)
+                    if len(weights) == 1:
+                        continue
+                    best = max(
+                        weights,
+                        key=lambda w, lv=lv: (
+                            scores_of(
+                                [scans[i].labels for i in inner_val],
+                                [
+                                    classes[apply_post(scans[i], lv, inner_proba[i], w)][
+                                        rows[i].point_row
+                                    ]
+                                    for i in inner_val
+                                ],
+                            ).mean_iou
+                        ),
+                    )
+                    chosen_weight[name] = best
+                    per_lever[name]["chosen"].append(best)
+            model = make_classifier(lever, trees, seed, n_iter).fit(x, y)
             fit_s += time.perf_counter() - started
+            classes = np.asarray(model.classes_, dtype=np.uint8)
             for i in test:
+                truth_i = scans[i].labels
                 if lever.features is None:
                     points = np.arange(0, scans[i].labels.size, 5)
-                    predicted = model.predict(jakteristics_rows(scans[i], points))
-                    matrix.update(scans[i].labels[points], predicted)
+                    truth.append(truth_i[points])
+                    predicted[group[0][0]].append(
+                        model.predict(jakteristics_rows(scans[i], points)).astype(np.uint8)
+                    )
                     continue
+                truth.append(truth_i)
+                started = time.perf_counter()
                 proba = model.predict_proba(rows[i].values)
-                if lever.smooth_level is not None:
-                    proba = smooth(proba, rows[i].ancestors[lever.smooth_level])
-                row_labels = np.asarray(model.classes_)[np.argmax(proba, axis=1)]
-                matrix.update(scans[i].labels, row_labels[rows[i].point_row].astype(np.uint8))
-        scores = matrix.compute_scores()
-        miou.append(scores.mean_iou)
-        oa.append(scores.overall_accuracy)
-        ious.append(scores.iou)
-        print(f"  {name} seed {seed}: mIoU {scores.mean_iou:.3f} OA {scores.overall_accuracy:.3f}")
-    result = {
-        "lever": name,
-        "miou_mean": float(np.mean(miou)),
-        "miou_std": float(np.std(miou)),
-        "oa_mean": float(np.mean(oa)),
-        "oa_std": float(np.std(oa)),
-        "iou_mean": [None if np.isnan(v) else float(v) for v in np.nanmean(ious, axis=0)],
-        "feature_points_per_s": n_points / feature_s if feature_s else None,
-        "fit_s_per_fold": fit_s / (len(seeds) * n_folds),
-        "seeds": seeds,
-        "points_per_class": int(per_class * lever.points_factor),
-        "trees": lever.trees or trees,
+                predict_s += time.perf_counter() - started
+                for name, lv in group:
+                    started = time.perf_counter()
+                    columns = apply_post(scans[i], lv, proba, chosen_weight[name])
+                    per_lever[name]["post_s"] += time.perf_counter() - started
+                    predicted[name].append(classes[columns][rows[i].point_row])
+        for name, _ in group:
+            scores = scores_of(truth, predicted[name])
+            per_lever[name]["miou"].append(scores.mean_iou)
+            per_lever[name]["oa"].append(scores.overall_accuracy)
+            per_lever[name]["iou"].append(scores.iou)
+            print(
+                f"  {name} seed {seed}: mIoU {scores.mean_iou:.3f} "
+                f"OA {scores.overall_accuracy:.3f}",
+                flush=True,
+            )
+    results = {}
+    n_scored = n_points * len(seeds)
+    for name, lv in group:
+        r = per_lever[name]
+        results[name] = {
+            "lever": name,
+            "miou_mean": float(np.mean(r["miou"])),
+            "miou_std": float(np.std(r["miou"])),
+            "miou_per_seed": [float(v) for v in r["miou"]],
+            "oa_mean": float(np.mean(r["oa"])),
+            "oa_std": float(np.std(r["oa"])),
+            "iou_mean": [None if np.isnan(v) else float(v) for v in np.nanmean(r["iou"], axis=0)],
+            "feature_points_per_s": n_points / feature_s if feature_s else None,
+            "classify_points_per_s": n_scored / predict_s if predict_s else None,
+            "post_points_per_s": n_scored / r["post_s"] if r["post_s"] else None,
+            "chosen_weights": r["chosen"],
+            "boosting_rounds": rounds,
+            "fit_s_per_fold": fit_s / (len(seeds) * n_folds),
+            "seeds": seeds,
+            "points_per_class": int(per_class * lv.points_factor),
+            "trees": lv.trees or trees,
+        }
+    return results
+
+
+def measure_context_cost(folder: Path, *, repeats: int = 3) -> dict[str, Any]:
+    """End-to-end prediction (read ASCII, features, classify, context, write .labels) of
+    Oakland aj and ak by a default model trained on the other 8 scans, with the context
+    step off and on; runs interleaved, best of ``repeats``, wall and process CPU seconds."""
+    import resource
+    import tempfile
+
+    from semantic3d.baselines.covariance.config import ContextConfig, CovarianceConfig
+    from semantic3d.baselines.covariance.predict import predict_scan
+    from semantic3d.baselines.covariance.training import (
+        find_labelled_scans,
+        train_covariance_model,
+    )
+
+    test = ["oakland_part2_aj", "oakland_part2_ak"]
+    names = [p.stem for p in sorted(folder.glob("*.txt")) if p.stem not in test]
+    config = CovarianceConfig(context=ContextConfig(potts_weight=4.0))
+    model = train_covariance_model(find_labelled_scans(folder, names=names), config=config)
+    variants = {
+        "argmax": dataclasses.replace(
+            model,
+            config=dataclasses.replace(
+                config, context=dataclasses.replace(config.context, potts_weight=0.0)
+            ),
+        ),
+        "context": model,
     }
+
+    def cpu() -> float:
+        usage = resource.getrusage(resource.RUSAGE_SELF)
+        return usage.ru_utime + usage.ru_stime
+
+    best: dict[str, tuple[float, float]] = {}
+    n_points = 0
+    with tempfile.TemporaryDirectory() as scratch:
+        for repeat in range(repeats):
+            for name, variant in variants.items():
+                wall, used, n_points = time.perf_counter(), cpu(), 0
+                for scan in test:
+                    run = predict_scan(
+                        variant,
+                        folder / f"{scan}.txt",
+                        out_path=Path(scratch) / f"{name}{repeat}{scan}.labels",
+                    )
+                    n_points += run.n_points
+                timing = (time.perf_counter() - wall, cpu() - used)
+                best[name] = min(best.get(name, timing), timing)
+    result = {
+        name: {"wall_s": w, "cpu_s": c, "points_per_s": n_points / w}
+        for name, (w, c) in best.items()
+    }
+    result["cpu_ratio"] = best["context"][1] / best["argmax"][1]
+    result["potts_weight"] = config.context.potts_weight
+    print(json.dumps(result, indent=2))
     return result
 
 
@@ -317,22 +613,33 @@ def main() -> None:
     parser.add_argument("--trees", type=int, default=30)
     parser.add_argument("--folds", type=int, default=5)
     parser.add_argument("--out", type=Path, default=OUT / "cv_covariance.json")
+    parser.add_argument(
+        "--cost", action="store_true", help="only time prediction with the context step off/on"
+    )
     args = parser.parse_args()
     if not args.data.is_dir():
         sys.exit(f"{args.data}: the real samples are needed (../shared/data/oakland)")
+    if args.cost:
+        out = args.out.with_name("context_cost.json")
+        out.write_text(json.dumps(measure_context_cost(args.data), indent=2) + "\n")
+        return
     scans = load_scans(args.data)
     seeds = [int(s) for s in args.seeds.split(",")]
     results = json.loads(args.out.read_text()) if args.out.exists() else {}
+    groups: dict[Any, list[tuple[str, Lever]]] = {}
     for name in args.levers.split(","):
-        print(f"== {name}")
-        results[name] = cross_validate(
-            scans,
-            name,
-            LEVERS[name],
-            seeds=seeds,
-            per_class=args.points_per_class,
-            trees=args.trees,
-            n_folds=args.folds,
+        groups.setdefault(LEVERS[name].training_key, []).append((name, LEVERS[name]))
+    for group in groups.values():
+        print(f"== {', '.join(name for name, _ in group)}", flush=True)
+        results.update(
+            cross_validate(
+                scans,
+                group,
+                seeds=seeds,
+                per_class=args.points_per_class,
+                trees=args.trees,
+                n_folds=args.folds,
+            )
         )
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(json.dumps(results, indent=2) + "\n")

@@ -5,7 +5,12 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-from semantic3d.baselines.covariance.config import CovarianceConfig, ForestConfig, SamplingConfig
+from semantic3d.baselines.covariance.config import (
+    ContextConfig,
+    CovarianceConfig,
+    ForestConfig,
+    SamplingConfig,
+)
 from semantic3d.baselines.covariance.predict import predict_scan
 from semantic3d.baselines.covariance.training import (
     build_training_set,
@@ -19,6 +24,7 @@ from semantic3d.metrics import ConfusionMatrix
 CONFIG = CovarianceConfig(
     forest=ForestConfig(n_estimators=20, max_depth=20),
     sampling=SamplingConfig(points_per_class=3000),
+    context=ContextConfig(potts_weight=0.0),  # the features alone (the graph cut helps both)
 )
 
 

@@ -9,6 +9,7 @@ from semantic3d.core.errors import ShapeError
 from semantic3d.features.covariance import (
     DEGENERATE_SUM_M2,
     N_COVARIANCE_COLUMNS,
+    as_kernel_indices,
     compute_covariance_features,
     compute_eigen,
     geometry_kernel,
@@ -161,7 +162,7 @@ def test_height_features_span_the_neighbourhood() -> None:
     np.testing.assert_allclose(got, [[2.0, 1.5, 0.5]])
 
 
-@pytest.mark.parametrize("dtype", [np.int64, np.uint32])
+@pytest.mark.parametrize("dtype", [np.int64, np.int32, np.uint32])
 def test_the_fused_kernel_is_the_covariance_and_height_kernels_bit_for_bit(dtype: type) -> None:
     rng = np.random.default_rng(7)
     points = rng.normal(size=(500, 3)) * [5.0, 5.0, 0.5]
@@ -170,7 +171,7 @@ def test_the_fused_kernel_is_the_covariance_and_height_kernels_bit_for_bit(dtype
     neighbours[:20] = np.arange(10)
     queries = points[rng.integers(0, 500, size=400)] + rng.normal(size=(400, 3)) * 0.1
     fused = np.empty((400, N_COVARIANCE_COLUMNS + 3), np.float32)
-    geometry_kernel(points, neighbours, queries, fused)
+    geometry_kernel(points, as_kernel_indices(neighbours, 500), queries, fused)
     separate = np.hstack(
         [
             compute_covariance_features(points, neighbours, queries),
@@ -180,10 +181,20 @@ def test_the_fused_kernel_is_the_covariance_and_height_kernels_bit_for_bit(dtype
     assert np.array_equal(fused.view(np.uint32), separate.view(np.uint32))
 
 
+def test_every_index_type_reaches_the_kernels_as_uint32() -> None:
+    neighbours = np.array([[0, 2], [1, 1]], np.int64)
+    indices = as_kernel_indices(neighbours[:, ::-1], 3)  # a strided view too
+    assert indices.dtype == np.uint32 and indices.flags.c_contiguous
+    assert indices.tolist() == [[2, 0], [1, 1]]
+    with pytest.raises(ShapeError, match=r"indices in 0\.\.2"):
+        as_kernel_indices(np.array([[-1, 0]]), 3)
+
+
 @pytest.mark.parametrize(
     ("neighbours", "queries", "match"),
     [
-        (np.zeros((2, 3), np.int32), np.zeros((2, 3)), "neighbours: expected"),
+        (np.zeros((2, 3), np.float64), np.zeros((2, 3)), "neighbours: expected"),
+        (np.zeros((2,), np.int64), np.zeros((2, 3)), "neighbours: expected"),
         (np.zeros((2, 3), np.int64), np.zeros((3, 3)), "queries: expected"),
         (np.full((2, 3), 7, np.int64), np.zeros((2, 3)), "indices in 0..4"),
     ],

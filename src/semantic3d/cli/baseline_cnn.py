@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any
 import typer
 
 from semantic3d.cli import console as ui
+from semantic3d.cli.cluster import open_cluster, scheduler_option, workers_option
 from semantic3d.cli.console import (
     MARKUP_MODE,
     escape,
@@ -26,6 +27,7 @@ from semantic3d.cli.console import (
 
 if TYPE_CHECKING:
     from semantic3d.baselines.cnn.config import CnnConfig
+    from semantic3d.baselines.common.prediction import Predictor
 
 cnn_app = typer.Typer(
     rich_markup_mode=MARKUP_MODE,
@@ -172,11 +174,14 @@ def predict(
     device: DeviceChoice = typer.Option(DeviceChoice.CPU, "--device", help="cpu or cuda."),
     workdir: Path | None = typer.Option(None, "--workdir", help="Scratch folder for tiles."),
     overwrite: bool = typer.Option(False, "--overwrite", help=_OVERWRITE_HELP),
+    scheduler: str | None = scheduler_option(),
+    workers: int | None = workers_option(),
 ) -> None:
     """Label scans with a trained model: one SCAN, or every scan of --data.
 
     Writes NAME.labels and a NAME.labels.json run record (run time, hardware) per scan into
-    ./predictions (or --out), as `baseline covariance predict` does.
+    ./predictions (or --out), as `baseline covariance predict` does. With --scheduler or
+    --workers the tiles are labelled on a Dask cluster (same labels, byte for byte).
     """
     with guarded():
         from semantic3d.baselines.cnn.persistence import load_model
@@ -193,7 +198,7 @@ def predict(
         scans_to_label, target = _scans_and_target(scan, data, out, chosen)
         refuse_existing_outputs(planned_outputs(target, scans_to_label), overwrite=overwrite)
         model = load_model(model_path, device=device.value)
-        with progress_bar() as bar:
+        with open_cluster(scheduler, workers) as cluster, progress_bar() as bar:
             task = bar.add_task(f"labelling {plural(len(scans_to_label), 'scan')}", total=None)
 
             def update(index: int, done: int, total: int) -> None:
@@ -205,8 +210,13 @@ def predict(
                     total=total or None,
                 )
 
+            predictor: Predictor = model
+            if cluster is not None:  # tiles labelled by the workers (same labels)
+                from semantic3d.scale.predict_cnn import ClusterCnnPredictor
+
+                predictor = ClusterCnnPredictor(model, cluster)
             result = predict_scans(
-                model,
+                predictor,
                 scans_to_label,
                 target,
                 workdir=workdir,

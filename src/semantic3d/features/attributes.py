@@ -12,6 +12,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from semantic3d.core.errors import ShapeError
+from semantic3d.features.covariance import as_kernel_indices
 
 
 def compute_attribute_features(
@@ -33,7 +34,11 @@ def compute_attribute_features(
     expected = 3 * colour + intensity
     if attributes.ndim != 2 or attributes.shape[1] != expected:
         raise ShapeError(f"attributes: expected (n, {expected}), found {attributes.shape}")
-    means = _neighbour_means(attributes, neighbours)
+    # One index type and layout for the kernel (each other one is another compilation).
+    means = _neighbour_means(
+        np.ascontiguousarray(attributes, dtype=np.float64),
+        as_kernel_indices(neighbours, attributes.shape[0]),
+    )
     columns: list[NDArray[np.float64]] = []
     if colour:
         columns.extend(_rgb_to_hsv(means[:, :3] / 255.0))

@@ -64,10 +64,29 @@ def compute_covariance_features(
     Returns:
         ``(m, 13)`` float32 columns in ``COVARIANCE_FEATURES + MOMENT_FEATURES`` order.
     """
-    _check_inputs(points, neighbours, queries)
-    out = np.empty((neighbours.shape[0], N_COVARIANCE_COLUMNS), np.float32)
-    covariance_kernel(points, neighbours, queries, out)
+    indices = _check_inputs(points, neighbours, queries)
+    out = np.empty((indices.shape[0], N_COVARIANCE_COLUMNS), np.float32)
+    covariance_kernel(points, indices, queries, out)
     return out
+
+
+def as_kernel_indices(neighbours: NDArray[np.integer], n_points: int) -> NDArray[np.integer]:
+    """Checked ``neighbours`` in the one index type the kernels are compiled for.
+
+    The neighbour searches give C-contiguous uint32; other integer arrays (a k-d tree's
+    int64, say) are converted, so a caller's dtype never costs another compilation of
+    the kernels (~10 s each). Indices must lie in ``0..n_points - 1``; int64 is kept only
+    where uint32 cannot hold them.
+    """
+    if neighbours.ndim != 2 or neighbours.shape[1] < 1 or neighbours.dtype.kind not in "iu":
+        raise ShapeError(
+            f"neighbours: expected (m, k) integers with k >= 1, found "
+            f"{neighbours.shape} {neighbours.dtype}"
+        )
+    if neighbours.size and (neighbours.min() < 0 or neighbours.max() >= n_points):
+        raise ShapeError(f"neighbours: expected indices in 0..{n_points - 1}")
+    dtype = np.uint32 if n_points <= np.iinfo(np.uint32).max else np.int64
+    return np.ascontiguousarray(neighbours, dtype=dtype)
 
 
 def compute_eigen(
@@ -90,25 +109,16 @@ def compute_eigen(
 
 def _check_inputs(
     points: NDArray[np.float64], neighbours: NDArray[np.integer], queries: NDArray[np.float64]
-) -> None:
+) -> NDArray[np.integer]:
     if points.ndim != 2 or points.shape[1] != 3 or points.dtype != np.float64:
         raise ShapeError(f"points: expected (n, 3) float64, found {points.shape} {points.dtype}")
-    if (
-        neighbours.ndim != 2
-        or neighbours.dtype not in (np.int64, np.uint32)
-        or neighbours.shape[1] < 1
-    ):
-        raise ShapeError(
-            f"neighbours: expected (m, k) int64 or uint32 with k >= 1, found "
-            f"{neighbours.shape} {neighbours.dtype}"
-        )
+    indices = as_kernel_indices(neighbours, points.shape[0])
     if queries.shape != (neighbours.shape[0], 3) or queries.dtype != np.float64:
         raise ShapeError(
             f"queries: expected ({neighbours.shape[0]}, 3) float64, "
             f"found {queries.shape} {queries.dtype}"
         )
-    if neighbours.size and (neighbours.min() < 0 or neighbours.max() >= points.shape[0]):
-        raise ShapeError(f"neighbours: expected indices in 0..{points.shape[0] - 1}")
+    return indices
 
 
 # Hand-written hot path: millions of 3x3 symmetric eigenproblems per scan. Batched LAPACK

@@ -77,9 +77,13 @@ def compute_cylinder_features(
     sorted_codes = codes[order]
     change = np.flatnonzero(sorted_codes[1:] != sorted_codes[:-1]) + 1
     starts = np.concatenate(([0], change, [sorted_codes.size])).astype(np.int64)
+    # A C-contiguous destination only: another layout would be another compilation.
+    block = out if out.flags.c_contiguous else np.empty(out.shape, np.float32)
     _cylinder_kernel(
-        points[order], sorted_codes[starts[:-1]], starts, queries, origin, cell, radius_m, out
+        points[order], sorted_codes[starts[:-1]], starts, queries, origin, cell, radius_m, block
     )
+    if block is not out:
+        out[...] = block
     return out
 
 

@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from semantic3d.core.errors import ShapeError
-from semantic3d.features.covariance import height_kernel
+from semantic3d.features.covariance import as_kernel_indices, height_kernel
 from semantic3d.features.names import HEIGHT_FEATURES
 
 N_HEIGHT_COLUMNS = len(HEIGHT_FEATURES)
@@ -50,6 +50,12 @@ def compute_height_features(
             f"neighbours/queries: expected (m, k) and (m, 3), found "
             f"{neighbours.shape} and {queries.shape}"
         )
-    out = np.empty((neighbours.shape[0], N_HEIGHT_COLUMNS), np.float32)
-    height_kernel(points, neighbours, queries, out)
+    indices = as_kernel_indices(neighbours, points.shape[0])
+    out = np.empty((indices.shape[0], N_HEIGHT_COLUMNS), np.float32)
+    height_kernel(
+        np.ascontiguousarray(points, dtype=np.float64),
+        indices,
+        np.ascontiguousarray(queries, dtype=np.float64),
+        out,
+    )
     return out

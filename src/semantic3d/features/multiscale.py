@@ -121,23 +121,25 @@ def compute_level_features(
     if out.shape != (queries.shape[0], width):
         raise ShapeError(f"out: expected ({queries.shape[0]}, {width}), found {out.shape}")
     found = index.query(queries, k=config.k_neighbours)
-    column = N_COVARIANCE_COLUMNS
-    if config.spherical_height:
-        column += N_HEIGHT_COLUMNS
-        geometry_kernel(index.xyz, found.indices, queries, out[:, :column])
-    else:
-        covariance_kernel(index.xyz, found.indices, queries, out[:, :column])
+    column = N_COVARIANCE_COLUMNS + (N_HEIGHT_COLUMNS if config.spherical_height else 0)
+    # The kernels always get C-contiguous arrays of one dtype: every other layout would be
+    # another compilation (~10 s) on first use. A column slice goes through a block.
+    indices = np.ascontiguousarray(found.indices, dtype=np.uint32)
+    target = out[:, :column]
+    block = target if target.flags.c_contiguous else np.empty(target.shape, np.float32)
+    kernel = geometry_kernel if config.spherical_height else covariance_kernel
+    kernel(index.xyz, indices, queries, block)
+    if block is not target:
+        target[...] = block
     reach = found.kth_distance
     if config.cylinders:
         radius_m = config.cylinder_radius_m(level)
         width = len(config.cylinder_features)
+        cylinders = compute_cylinder_features(index.xyz, queries, radius_m=radius_m)
         if width == N_CYLINDER_COLUMNS:
-            compute_cylinder_features(
-                index.xyz, queries, radius_m=radius_m, out=out[:, column : column + width]
-            )
+            out[:, column : column + width] = cylinders
         else:
-            block = compute_cylinder_features(index.xyz, queries, radius_m=radius_m)
-            out[:, column : column + width] = block[:, _cylinder_columns(config)]
+            out[:, column : column + width] = cylinders[:, _cylinder_columns(config)]
         column += width
         reach = np.maximum(reach, radius_m)
     if config.colour or config.intensity:

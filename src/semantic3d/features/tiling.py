@@ -124,12 +124,14 @@ class TileFeatures:
         point_indices: ``(m,)`` int64 indices of the points in the whole scan, ascending.
         table: rows for those points (``table.point_row`` aligned with ``point_indices``).
         labels: ``(m,)`` uint8 label values when the chunks carried labels, else None.
+        xyz: ``(m, 3)`` float64 absolute positions of those points.
     """
 
     tile: Tile
     point_indices: NDArray[np.int64]
     table: FeatureTable
     labels: NDArray[np.uint8] | None
+    xyz: NDArray[np.float64]
 
 
 class TiledScan:
@@ -317,8 +319,9 @@ class TiledScan:
         if not keep.any():
             return None
         labels = points.cloud.labels[keep] if points.cloud.labels is not None else None
-        table = self._tile_table(tile, points.cloud.xyz[keep], np.flatnonzero(keep))
-        return TileFeatures(tile, points.indices[keep], table, labels)
+        xyz = points.cloud.xyz[keep]
+        table = self._tile_table(tile, xyz, np.flatnonzero(keep))
+        return TileFeatures(tile, points.indices[keep], table, labels, xyz)
 
     def share(self) -> None:
         """Compute what every tile shares once and save it in the scratch folder.

@@ -31,9 +31,11 @@ if TYPE_CHECKING:
         scan_folds,
     )
     from semantic3d.baselines.cnn.cubes import (
+        CentringError,
         Occupancy,
         build_occupancy,
         compute_corner_cells,
+        compute_cubes,
         fill_cubes,
     )
     from semantic3d.baselines.cnn.model import CnnModel, DeviceError
@@ -63,9 +65,11 @@ _EXPORTS = {
     "FoldResult": "crossval",
     "cross_validate": "crossval",
     "scan_folds": "crossval",
+    "CentringError": "cubes",
     "Occupancy": "cubes",
     "build_occupancy": "cubes",
     "compute_corner_cells": "cubes",
+    "compute_cubes": "cubes",
     "fill_cubes": "cubes",
     "CnnModel": "model",
     "DeviceError": "model",
@@ -82,6 +86,7 @@ _EXPORTS = {
 }
 
 __all__ = [
+    "CentringError",
     "CheckpointError",
     "CnnConfig",
     "CnnModel",
@@ -99,6 +104,7 @@ __all__ = [
     "build_network",
     "build_occupancy",
     "compute_corner_cells",
+    "compute_cubes",
     "config_from_dict",
     "config_to_dict",
     "count_parameters",

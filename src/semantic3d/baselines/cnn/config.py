@@ -11,6 +11,7 @@ with a training schedule short enough for a CPU (and says so in every model it t
     [cubes]
     voxel_sizes_m = [0.025, 0.05, 0.1, 0.2, 0.4]
     cube_voxels = 16
+    centring = "point"
 
     [network]
     channels = [16, 32, 64]
@@ -43,6 +44,7 @@ from semantic3d.core.classes import LABEL_VALUES
 from semantic3d.core.errors import ConfigError
 
 __all__ = [
+    "CENTRINGS",
     "PRESETS",
     "CnnConfig",
     "CubeConfig",
@@ -55,6 +57,11 @@ __all__ = [
 ]
 
 
+CENTRINGS: tuple[str, ...] = ("point", "corner")
+"""How a cube sits on its point: ``"point"`` exactly centred (the paper);
+``"corner"`` the block of the scan's grid around the grid corner nearest the point."""
+
+
 @dataclass(frozen=True, slots=True)
 class CubeConfig:
     """The network's input: one occupancy cube per scale, centred on the point.
@@ -62,10 +69,14 @@ class CubeConfig:
     Attributes:
         voxel_sizes_m: voxel edge of each scale (the paper: 2.5, 5, 10, 20, 40 cm).
         cube_voxels: voxels along a cube's edge (the paper: 16).
+        centring: ``"point"`` (the paper: each cube centred exactly on its point) or
+            ``"corner"`` (centred on the nearest corner of the scan's grid, within half a
+            voxel; models saved without this field were trained so).
     """
 
     voxel_sizes_m: tuple[float, ...] = (0.025, 0.05, 0.1, 0.2, 0.4)
     cube_voxels: int = 16
+    centring: str = "point"
 
     def __post_init__(self) -> None:
         if not self.voxel_sizes_m:
@@ -77,6 +88,10 @@ class CubeConfig:
             raise ConfigError(
                 f"cube_voxels: expected a multiple of 8 (three 2x pools), found {self.cube_voxels!r}"
             )
+        if self.centring not in CENTRINGS:
+            raise ConfigError(
+                f"centring: expected one of {list(CENTRINGS)}, found {self.centring!r}"
+            )
 
     @property
     def n_scales(self) -> int:
@@ -85,11 +100,13 @@ class CubeConfig:
 
     @property
     def reach_m(self) -> float:
-        """How far from a point (in x or y) a point can change its cubes.
+        """How far from a point (in x or y) a point can change its cubes: the halo a tile
+        needs for tiled cubes to equal whole-scan ones.
 
-        A cube's voxels are looked up in the scan's grid around the grid corner nearest
-        the point, so points up to half a cube plus half a voxel away count: the halo a
-        tile needs for tiled cubes to equal whole-scan ones.
+        Corner-centred cubes see cells up to half a cube plus half a voxel away. A
+        point-centred cube reaches exactly half a cube (``C/2 * v``) from its point, up
+        to float64 rounding of the fractions (~1e-10 m); the same half-voxel margin is
+        kept for it, so both centrings use ``(C/2 + 1/2) * v`` (3.4 m for the paper's).
         """
         return (self.cube_voxels / 2 + 0.5) * max(self.voxel_sizes_m)
 

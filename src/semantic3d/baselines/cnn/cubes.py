@@ -1,5 +1,10 @@
 """Occupancy cubes: the network's input, generated on the fly from a tile's points.
 
+Two centrings (``CubeConfig.centring``): ``"point"`` (the paper's, the default) centres
+each cube exactly on its point, see :mod:`.point_cubes`; ``"corner"`` (described here,
+what models trained before it existed use) takes the block of the scan's grid around the
+grid corner nearest the point. :func:`build_occupancy` and :func:`compute_cubes` serve both.
+
 For each scale (voxel size ``v``) the points of a tile and its halo are cut into the
 scan's voxel grid (integer cells ``floor((xyz - origin) / v)``, float64 metres relative to
 the scan's grid origin, exactly as :func:`semantic3d.spatial.compute_cells` does), and the
@@ -31,10 +36,28 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
-from semantic3d.core.errors import ShapeError
+from semantic3d.baselines.cnn.config import CENTRINGS
+from semantic3d.baselines.cnn.point_cubes import (
+    CellSummaries,
+    build_cell_summaries,
+    fill_point_cubes,
+)
+from semantic3d.core.errors import Semantic3DError, ShapeError
 from semantic3d.spatial.voxels import CELL_BITS, CELL_OFFSET, compute_cells, pack_keys
 
-__all__ = ["Occupancy", "build_occupancy", "compute_corner_cells", "fill_cubes"]
+__all__ = [
+    "CENTRINGS",
+    "CentringError",
+    "Occupancy",
+    "build_occupancy",
+    "compute_corner_cells",
+    "compute_cubes",
+    "fill_cubes",
+]
+
+
+class CentringError(Semantic3DError, ValueError):
+    """A cube centring that is not known, or an occupancy built for another centring."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -46,11 +69,14 @@ class Occupancy:
         voxel_sizes_m: voxel edge of each scale.
         keys: per scale, the sorted unique packed keys (:func:`semantic3d.spatial.pack_keys`)
             of the occupied cells.
+        summaries: per scale, the cells' orthant summaries that point-centred cubes need
+            (:mod:`.point_cubes`); ``None`` when built for corner-centred cubes only.
     """
 
     origin: NDArray[np.float64]
     voxel_sizes_m: tuple[float, ...]
     keys: tuple[NDArray[np.int64], ...]
+    summaries: tuple[CellSummaries, ...] | None = None
 
     @property
     def n_scales(self) -> int:
@@ -59,11 +85,30 @@ class Occupancy:
 
 
 def build_occupancy(
-    xyz: NDArray[np.float64], *, origin: NDArray[np.float64], voxel_sizes_m: Sequence[float]
+    xyz: NDArray[np.float64],
+    *,
+    origin: NDArray[np.float64],
+    voxel_sizes_m: Sequence[float],
+    centring: str = "corner",
 ) -> Occupancy:
-    """The occupied cells of ``(n, 3)`` float64 points at each voxel size."""
+    """The occupied cells of ``(n, 3)`` float64 points at each voxel size.
+
+    With ``centring="point"`` each cell also gets the summary point-centred cubes need
+    (the keys are the same either way).
+    """
     xyz = _as_xyz(xyz, "xyz")
     origin = np.asarray(origin, dtype=np.float64).reshape(3)
+    _check_centring(centring)
+    if centring == "point":
+        summaries = tuple(
+            build_cell_summaries(xyz, origin=origin, voxel_size_m=float(v)) for v in voxel_sizes_m
+        )
+        return Occupancy(
+            origin,
+            tuple(float(v) for v in voxel_sizes_m),
+            tuple(s.keys for s in summaries),
+            summaries,
+        )
     keys = tuple(
         np.unique(pack_keys(compute_cells(xyz, origin=origin, voxel_size_m=float(v))))
         for v in voxel_sizes_m
@@ -126,6 +171,53 @@ def fill_cubes(
     )  # one array: numba takes no tuple of arrays of varying length cheaply
     _fill(flat, starts, np.ascontiguousarray(corners, dtype=np.int64), cube_voxels, out)
     return out
+
+
+def compute_cubes(
+    occupancy: Occupancy,
+    xyz: NDArray[np.float64],
+    *,
+    cube_voxels: int,
+    centring: str,
+    out: NDArray[np.float32] | None = None,
+) -> NDArray[np.float32]:
+    """``(n, n_scales, C, C, C)`` float32 cubes of ``(n, 3)`` float64 points.
+
+    Args:
+        occupancy: the occupied cells of the tile and its halo
+            (:func:`build_occupancy` with the same ``centring``).
+        xyz: the points whose cubes are wanted.
+        cube_voxels: ``C``.
+        centring: ``"point"`` or ``"corner"`` (see the module docstring).
+        out: an array of that shape to fill (reused between batches), else a new one.
+    """
+    _check_centring(centring)
+    if centring == "corner":
+        corners = compute_corner_cells(
+            xyz,
+            origin=occupancy.origin,
+            voxel_sizes_m=occupancy.voxel_sizes_m,
+            cube_voxels=cube_voxels,
+        )
+        return fill_cubes(occupancy, corners, cube_voxels=cube_voxels, out=out)
+    if occupancy.summaries is None:
+        raise CentringError(
+            "occupancy: expected cell summaries for point-centred cubes, found an occupancy "
+            'built for corner-centred ones (build_occupancy(..., centring="point"))'
+        )
+    return fill_point_cubes(
+        occupancy.summaries,
+        _as_xyz(xyz, "xyz"),
+        origin=occupancy.origin,
+        voxel_sizes_m=occupancy.voxel_sizes_m,
+        cube_voxels=cube_voxels,
+        out=out,
+    )
+
+
+def _check_centring(centring: str) -> None:
+    if centring not in CENTRINGS:
+        raise CentringError(f"centring: expected one of {list(CENTRINGS)}, found {centring!r}")
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)

@@ -1,4 +1,11 @@
-"""Occupancy cubes on a torch device (the GPU path): the lookup of :mod:`.cubes` in torch.
+"""Occupancy cubes on a torch device (the GPU path): the corner-centred lookup of
+:mod:`.cubes` in torch.
+
+Corner-centred cubes only. Point-centred cubes (``centring = "point"``, the default) need
+each occupied cell's orthant summary, a list of a different length per cell scanned per
+query, which has no clean batched form in torch; a model with point-centred cubes fills
+them with the compiled CPU kernel (:mod:`.point_cubes`, all host cores) and sends them to
+the device, where the network runs (:meth:`~.model.CnnModel.label_points`).
 
 The tile's sorted keys and the points' corner cells (integers, computed in float64 on the
 host by :func:`~semantic3d.baselines.cnn.cubes.compute_corner_cells`) go to the device;

@@ -8,9 +8,10 @@ consumes them. Memory is bounded by a tile and a batch, whatever the scan's size
 labels are those of the whole scan in memory (tested), because every cell and corner is
 computed from float64 coordinates relative to one grid origin for the whole scan.
 
-On a CUDA device the cubes are filled on the GPU (:mod:`.cubes_torch`), the network runs
-channels-last under bf16 autocast, and the next tile is read and voxelised on the host
-while the GPU works on the current one.
+On a CUDA device the network runs channels-last under bf16 autocast, and the next tile is
+read and voxelised on the host while the GPU works on the current one. Corner-centred
+cubes are filled on the GPU (:mod:`.cubes_torch`); point-centred ones (the default) by
+the compiled CPU kernel of :mod:`.point_cubes`, then sent to the device.
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ from semantic3d.baselines.cnn.cubes import (
     Occupancy,
     build_occupancy,
     compute_corner_cells,
+    compute_cubes,
     fill_cubes,
 )
 from semantic3d.baselines.common.prediction import LabelledBlock
@@ -151,10 +153,13 @@ class CnnModel:
     def label_points(self, xyz: NDArray[np.float64], occupancy: Occupancy) -> NDArray[np.uint8]:
         """Label values of ``(n, 3)`` float64 points whose neighbourhood ``occupancy`` holds.
 
-        With ``prediction.deduplicate`` points whose cubes are identical (same corner cell
-        at every scale) are classified once.
+        With ``prediction.deduplicate`` points whose cubes are identical are classified
+        once: the same corner cell at every scale (corner centring), the same coordinates
+        (point centring).
         """
         cubes = self.config.cubes
+        if cubes.centring == "point":
+            return self._label_point_centred(np.asarray(xyz, dtype=np.float64), occupancy)
         corners = compute_corner_cells(
             xyz,
             origin=occupancy.origin,
@@ -169,6 +174,31 @@ class CnnModel:
             inverse = inverse.reshape(-1)
         labels = self._label_corners(corners, occupancy)
         return labels if inverse is None else labels[inverse]
+
+    def _label_point_centred(
+        self, xyz: NDArray[np.float64], occupancy: Occupancy
+    ) -> NDArray[np.uint8]:
+        cubes = self.config.cubes
+        inverse: NDArray[np.int64] | None = None
+        if self.config.prediction.deduplicate and xyz.shape[0] > 1:
+            _, first, inverse = np.unique(xyz, axis=0, return_index=True, return_inverse=True)
+            xyz = xyz[np.sort(first)]  # distinct points, in their first order
+            rank = np.empty(first.size, np.int64)
+            rank[np.argsort(first)] = np.arange(first.size)
+            inverse = rank[inverse.reshape(-1)]
+        batch = self.config.prediction.batch_size
+        size = cubes.cube_voxels
+        n = xyz.shape[0]
+        out = np.empty(n, np.uint8)
+        buffer = np.empty((min(batch, n), cubes.n_scales, size, size, size), np.float32)
+        for begin in range(0, n, batch):
+            part = xyz[begin : begin + batch]
+            filled = compute_cubes(
+                occupancy, part, cube_voxels=size, centring="point", out=buffer[: part.shape[0]]
+            )
+            # On a GPU too: the cubes are filled here and sent (see the module docstring).
+            out[begin : begin + part.shape[0]] = self.classify_cubes(torch.from_numpy(filled))
+        return out if inverse is None else out[inverse]
 
     def _label_corners(self, corners: NDArray[np.int64], occupancy: Occupancy) -> NDArray[np.uint8]:
         cubes = self.config.cubes
@@ -198,10 +228,22 @@ class CnnModel:
         if cloud.n_points == 0:
             return np.empty(0, np.uint8)
         origin = self.grid_origin(cloud.xyz[0])
+        cubes = self.config.cubes
         occupancy = build_occupancy(
-            cloud.xyz, origin=origin, voxel_sizes_m=self.config.cubes.voxel_sizes_m
+            cloud.xyz, origin=origin, voxel_sizes_m=cubes.voxel_sizes_m, centring=cubes.centring
         )
         return self.label_points(np.asarray(cloud.xyz), occupancy)
+
+    def label_tile(
+        self, store: TileStore, tile: TileKey, origin: NDArray[np.float64]
+    ) -> tuple[NDArray[np.int64], NDArray[np.uint8]]:
+        """Scan indices and label values of one tile's points, its halo read from ``store``.
+
+        The unit of work of :meth:`iter_labelled_blocks`, which another process that sees
+        the store can do as well (``origin``: the scan's :meth:`grid_origin`).
+        """
+        prepared = _prepare(store, tile, origin, self, None)
+        return prepared.indices, self.label_points(prepared.xyz, prepared.occupancy)
 
     def grid_origin(self, first_point: NDArray[np.float64]) -> NDArray[np.float64]:
         """The scan's grid anchor: its first point snapped to the coarsest voxel grid."""
@@ -252,7 +294,9 @@ def _prepare(
         keep = np.isin(indices, select, assume_unique=True)
         indices = indices[keep]
     neighbourhood = np.concatenate([core, np.asarray(data.halo.cloud.xyz)])
-    occupancy = build_occupancy(neighbourhood, origin=origin, voxel_sizes_m=cubes.voxel_sizes_m)
+    occupancy = build_occupancy(
+        neighbourhood, origin=origin, voxel_sizes_m=cubes.voxel_sizes_m, centring=cubes.centring
+    )
     return _PreparedTile(indices, core if keep is None else core[keep], occupancy)
 
 

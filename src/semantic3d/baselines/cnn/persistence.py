@@ -5,7 +5,9 @@ configuration, label values, training scans, seed, batches trained), then the ne
 weights as a torch state dict, loaded with ``weights_only=True`` (no arbitrary pickle).
 The header is checked before the weights are read: a file of another kind or format
 version fails with a clear message. Weights are portable across torch versions, so only
-the format version is enforced.
+the format version is enforced. A header whose ``[cubes]`` table has no ``centring``
+was written before point-centred cubes existed: its model was trained on corner-centred
+cubes and loads as ``centring = "corner"``.
 """
 
 from __future__ import annotations
@@ -73,8 +75,8 @@ def load_model(path: str | Path, *, device: str = "cpu") -> CnnModel:
     path = Path(path)
     with _FILE.open(path) as (header, stream):
         try:
-            config: CnnConfig = config_from_dict(header["config"], source=str(path))
-        except (ConfigError, KeyError) as exc:
+            config: CnnConfig = config_from_dict(_with_centring(header["config"]), source=str(path))
+        except (ConfigError, KeyError, TypeError) as exc:
             raise ModelFileError(f"{path}: corrupt model header: {exc}") from exc
         try:
             state = torch.load(stream, map_location="cpu", weights_only=True)
@@ -98,3 +100,12 @@ def load_model(path: str | Path, *, device: str = "cpu") -> CnnModel:
         package_version=str(header["package_version"]),
     )
     return model.to(device)
+
+
+def _with_centring(config: Any) -> Any:
+    """The header's configuration; cubes without a ``centring`` are corner-centred (older
+    files)."""
+    cubes = config.get("cubes", {}) if isinstance(config, dict) else None
+    if isinstance(cubes, dict) and "centring" not in cubes:
+        return {**config, "cubes": {**cubes, "centring": "corner"}}
+    return config

@@ -31,7 +31,7 @@ from numpy.typing import NDArray
 
 from semantic3d import __version__
 from semantic3d.baselines.cnn.config import CnnConfig, config_to_dict
-from semantic3d.baselines.cnn.cubes import build_occupancy, compute_corner_cells, fill_cubes
+from semantic3d.baselines.cnn.cubes import build_occupancy, compute_cubes
 from semantic3d.baselines.cnn.model import CnnModel, resolve_device
 from semantic3d.baselines.cnn.network import build_network
 from semantic3d.baselines.common.scans import LabelledScan, TrainingDataError
@@ -288,11 +288,12 @@ def _round_cubes(
             ]
         )
         origin = np.zeros(3)
-        occupancy = build_occupancy(rotated, origin=origin, voxel_sizes_m=cubes.voxel_sizes_m)
-        corners = compute_corner_cells(
-            rotated[chosen], origin=origin, voxel_sizes_m=cubes.voxel_sizes_m, cube_voxels=size
+        occupancy = build_occupancy(
+            rotated, origin=origin, voxel_sizes_m=cubes.voxel_sizes_m, centring=cubes.centring
         )
-        filled = fill_cubes(occupancy, corners, cube_voxels=size)
+        filled = compute_cubes(
+            occupancy, rotated[chosen], cube_voxels=size, centring=cubes.centring
+        )
         packed[slots] = np.packbits(filled.reshape(slots.size, -1).astype(np.uint8), axis=1)
     return packed, slot_classes.astype(np.uint8)
 

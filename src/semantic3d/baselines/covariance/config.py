@@ -26,6 +26,9 @@ the values of every key the file leaves out: ``"default"`` (the dataclass defaul
     [prediction]
     tile_size_m = 25.6
 
+    [context]
+    potts_weight = 4.0  # the context step (0 turns it off)
+
     [grid_search]
     n_estimators = [25, 50]
     max_depth = [10, 20, "none"]
@@ -48,6 +51,7 @@ from semantic3d.features.tiling import DEFAULT_TILE_SIZE_M
 
 __all__ = [
     "ConfigError",
+    "ContextConfig",
     "CovarianceConfig",
     "ForestConfig",
     "GridSearchConfig",
@@ -58,6 +62,10 @@ __all__ = [
     "load_config",
     "preset_config",
 ]
+
+DEFAULT_POTTS_WEIGHT = 4.0
+"""Default weight of the context step (the cross-validation's inner splits choose 1 to 8,
+median 4; docs/baseline_covariance.md). The ``paper`` preset has no context step."""
 
 PRESETS = ("default", "paper")
 """Names a configuration's ``preset`` may take."""
@@ -141,6 +149,44 @@ class PredictionConfig:
 
 
 @dataclass(frozen=True, slots=True)
+class ContextConfig:
+    """Spatial context on the classifier's class probabilities.
+
+    The level-0 voxels of a scan (or of a tile) are joined to their ``n_neighbours``
+    nearest (by the centroid of their points) and labelled by minimising a Potts energy,
+    ``sum -log p(label) + potts_weight * (neighbours labelled differently)``, with
+    alpha-expansion (:mod:`~semantic3d.baselines.covariance.context`). Chosen by the
+    leave-scans-out cross-validation (docs/baseline_covariance.md): +0.06 mIoU on Oakland,
+    the weight chosen per fold on inner splits (1 to 8, median 4). On by default; a model
+    saved before the step existed predicts without it.
+
+    Attributes:
+        potts_weight: cost of two neighbouring voxels taking different labels, in units
+            of -log probability; 0 turns the step off (labels are the most probable class).
+        n_neighbours: graph edges per voxel.
+        max_sweeps: alpha-expansion passes over the classes (each pass lowers the energy;
+            one pass gives nearly all of the gain).
+    """
+
+    potts_weight: float = DEFAULT_POTTS_WEIGHT
+    n_neighbours: int = 8
+    max_sweeps: int = 1
+
+    def __post_init__(self) -> None:
+        if isinstance(self.potts_weight, bool) or not (
+            isinstance(self.potts_weight, numbers.Real) and self.potts_weight >= 0
+        ):
+            raise ConfigError(f"potts_weight: expected a number >= 0, found {self.potts_weight!r}")
+        _check_positive("n_neighbours", self.n_neighbours)
+        _check_positive("max_sweeps", self.max_sweeps)
+
+    @property
+    def enabled(self) -> bool:
+        """Whether prediction runs the context step."""
+        return self.potts_weight > 0
+
+
+@dataclass(frozen=True, slots=True)
 class GridSearchConfig:
     """Grid of forest hyper-parameters searched with cross-validation grouped by scan.
 
@@ -201,6 +247,7 @@ class CovarianceConfig:
     sampling: SamplingConfig = field(default_factory=SamplingConfig)
     prediction: PredictionConfig = field(default_factory=PredictionConfig)
     grid_search: GridSearchConfig = field(default_factory=GridSearchConfig)
+    context: ContextConfig = field(default_factory=ContextConfig)
 
     def __post_init__(self) -> None:
         if self.preset not in PRESETS:
@@ -216,7 +263,7 @@ def preset_config(name: str) -> CovarianceConfig:
       on scans left out of training (docs/baseline_covariance.md);
     - ``"paper"``: Hackel et al. (2016) as published: covariance and moment features of
       the k nearest neighbours, height features of vertical cylinders only, the forest
-      chosen by a five-fold grid search grouped by scan.
+      chosen by a five-fold grid search grouped by scan, no context step.
     """
     if name == "default":
         return CovarianceConfig()
@@ -227,6 +274,7 @@ def preset_config(name: str) -> CovarianceConfig:
                 cylinders=True, spherical_height=False, cylinder_features=CYLINDER_FEATURES
             ),
             grid_search=GridSearchConfig(select_forest=True),
+            context=ContextConfig(potts_weight=0.0),
         )
     raise ConfigError(f"preset: expected one of {', '.join(PRESETS)}, found {name!r}")
 

@@ -57,21 +57,30 @@ class CompiledForest:
 
     def predict_proba(self, features: NDArray[np.float32]) -> NDArray[np.float64]:
         """Mean leaf probabilities over the trees, ``(n_rows, n_classes)`` float64."""
-        x = np.ascontiguousarray(features, dtype=np.float32)
+        x = _writable(np.ascontiguousarray(features, dtype=np.float32))
         if x.ndim != 2 or x.shape[1] != self.n_features:
             raise ShapeError(f"features: expected (n, {self.n_features}), found {x.shape}")
         out = np.zeros((x.shape[0], self.n_classes), np.float64)
         _predict_kernel(
             x,
-            self.feature,
-            self.threshold,
-            self.left,
-            self.right,
-            self.roots,
-            self.leaf_values,
+            _writable(self.feature),
+            _writable(self.threshold),
+            _writable(self.left),
+            _writable(self.right),
+            _writable(self.roots),
+            _writable(self.leaf_values),
             out,
         )
         return out
+
+
+def _writable(array: NDArray[Any]) -> NDArray[Any]:
+    """``array``, copied when read-only (a memory map, a buffer from another process).
+
+    The kernel is compiled for writable arrays only: read-only ones would be another
+    compilation (seconds) on first use, far more than the copy.
+    """
+    return array if array.flags.writeable else np.array(array)
 
 
 def compile_forest(estimators: list[Any], *, n_features: int) -> CompiledForest:

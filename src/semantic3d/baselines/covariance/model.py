@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+import math
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -11,10 +13,17 @@ import numpy as np
 from numpy.typing import NDArray
 
 from semantic3d.baselines.common.prediction import LabelledBlock
-from semantic3d.baselines.covariance.config import CovarianceConfig
+from semantic3d.baselines.covariance.config import ContextConfig, CovarianceConfig
+from semantic3d.baselines.covariance.context import label_rows_by_group, row_centroids
 from semantic3d.baselines.covariance.estimator import CovarianceClassifier
 from semantic3d.core.errors import ShapeError
 from semantic3d.core.pointcloud import PointCloud
+from semantic3d.features.pyramid import grid_origin
+from semantic3d.spatial.grid import TileGrid
+
+logger = logging.getLogger(__name__)
+
+_NO_CONTEXT = ContextConfig(potts_weight=0.0)
 
 
 @dataclass(frozen=True, slots=True)
@@ -107,14 +116,26 @@ class CovarianceModel:
         from semantic3d.features.scan import iter_scan_features
 
         prediction = self.config.prediction
+        positions = _PositionFile(workdir, self.config) if self.context.enabled else None
         for block in iter_scan_features(
-            chunks,
+            chunks if positions is None else positions.record(chunks),
             config=self.config.features,
             max_points_in_memory=prediction.max_points_in_memory,
             tile_size_m=prediction.tile_size_m,
             workdir=workdir / "tiles",
         ):
-            row_labels = self.predict_rows(block.table.values)
+            if positions is None:
+                row_labels = self.predict_rows(block.table.values)
+            else:
+                xyz, tiles = positions.read(block.point_indices)
+                table = block.table
+                row_tile = np.zeros(table.n_rows, np.int64)
+                row_tile[table.point_row] = tiles
+                row_labels = self.predict_rows(
+                    table.values,
+                    row_xyz=row_centroids(xyz, table.point_row, table.n_rows),
+                    row_tile=row_tile,
+                )
             yield LabelledBlock(
                 block.point_indices,
                 row_labels[block.table.point_row],
@@ -123,12 +144,31 @@ class CovarianceModel:
             )
 
     @property
+    def context(self) -> ContextConfig:
+        """The context step's settings (off for a model saved before it existed)."""
+        context: ContextConfig = getattr(self.config, "context", _NO_CONTEXT)
+        return context
+
+    @property
     def label_values(self) -> tuple[int, ...]:
         """Label values the classifier can predict."""
         return tuple(int(v) for v in self.classifier.classes_)
 
-    def predict_rows(self, values: NDArray[np.float32]) -> NDArray[np.uint8]:
-        """Label values of feature rows ``(n, n_features)`` in ``feature_names`` order."""
+    def predict_rows(
+        self,
+        values: NDArray[np.float32],
+        *,
+        row_xyz: NDArray[np.floating] | None = None,
+        row_tile: NDArray[np.int64] | None = None,
+    ) -> NDArray[np.uint8]:
+        """Label values of feature rows ``(n, n_features)`` in ``feature_names`` order.
+
+        Without ``row_xyz`` every row gets its most probable class. With ``row_xyz``
+        (``(n, 3)`` position of each row, e.g. the centroid of its points) and the
+        configuration's context step on (``[context] potts_weight > 0``), the rows are
+        labelled together by alpha-expansion over their nearest-neighbour graph, tile by
+        tile when ``row_tile`` (``(n,)`` tile of each row, :func:`point_tiles`) is given.
+        """
         if values.ndim != 2 or values.shape[1] != len(self.feature_names):
             raise ShapeError(
                 f"feature rows: expected (n, {len(self.feature_names)}), found {values.shape}"
@@ -137,5 +177,88 @@ class CovarianceModel:
             return np.empty(0, np.uint8)
         proba = self.classifier.compiled_.predict_proba(values)
         classes = np.asarray(self.classifier.classes_, dtype=np.uint8)
-        labels: NDArray[np.uint8] = classes[np.argmax(proba, axis=1)]
+        context = self.context
+        if context.enabled and row_xyz is None:
+            logger.warning("context step skipped: no row positions were given")
+        if row_xyz is None or not context.enabled:
+            columns = np.argmax(proba, axis=1)
+        else:
+            columns = label_rows_by_group(
+                proba,
+                np.asarray(row_xyz, dtype=np.float64),
+                np.zeros(proba.shape[0], np.int64) if row_tile is None else row_tile,
+                potts_weight=context.potts_weight,
+                n_neighbours=context.n_neighbours,
+                max_sweeps=context.max_sweeps,
+            )
+        labels: NDArray[np.uint8] = classes[columns]
         return labels
+
+
+def point_tiles(
+    xyz: NDArray[np.float64], *, origin: NDArray[np.float64], config: CovarianceConfig
+) -> NDArray[np.int64]:
+    """``(n,)`` packed tile of every point on the grid that tiled prediction uses: tiles of
+    whole coarsest voxels of about ``[prediction] tile_size_m``, anchored at ``origin``
+    (the grid origin of the scan's first point), as in
+    :class:`~semantic3d.features.tiling.TiledScan`."""
+    features = config.features
+    tile_cells = 2 ** (features.n_levels - 1) * max(
+        1, math.ceil(config.prediction.tile_size_m / features.coarsest_voxel_size_m - 1e-9)
+    )
+    grid = TileGrid(
+        origin_xy=(float(origin[0]), float(origin[1])),
+        cell_size_m=features.base_voxel_size_m,
+        cells_per_tile=tile_cells,
+    )
+    keys = grid.tile_keys(xyz)
+    packed: NDArray[np.int64] = (keys[:, 0] << 32) + keys[:, 1]
+    return packed
+
+
+class _PositionFile:
+    """The scan's point positions (float32, relative to the grid origin) and tiles kept
+    on disk while it streams, so the context step can place the rows of every block in
+    bounded memory."""
+
+    def __init__(self, folder: Path, config: CovarianceConfig) -> None:
+        self.folder = folder
+        self.config = config
+        self._xyz: NDArray[np.float32] | None = None
+        self._tiles: NDArray[np.int64] | None = None
+        self._complete = False
+
+    def record(self, chunks: Iterable[PointCloud]) -> Iterator[PointCloud]:
+        """Pass ``chunks`` through, appending their positions and tiles to the files."""
+        self.folder.mkdir(parents=True, exist_ok=True)
+        origin: NDArray[np.float64] | None = None
+        with (
+            (self.folder / "xyz.f32").open("wb") as xyz_file,
+            (self.folder / "tiles.i64").open("wb") as tile_file,
+        ):
+            for chunk in chunks:
+                if chunk.n_points:
+                    if origin is None:
+                        origin = grid_origin(
+                            chunk.xyz[0],
+                            coarsest_voxel_size_m=self.config.features.coarsest_voxel_size_m,
+                        )
+                    xyz_file.write((chunk.xyz - origin).astype(np.float32).tobytes())
+                    tiles = point_tiles(chunk.xyz, origin=origin, config=self.config)
+                    tile_file.write(tiles.tobytes())
+                yield chunk
+        self._complete = True
+
+    def read(
+        self, point_indices: NDArray[np.int64]
+    ) -> tuple[NDArray[np.float32], NDArray[np.int64]]:
+        """``(m, 3)`` positions and ``(m,)`` tiles of the given points (of a scan streamed
+        through :meth:`record`)."""
+        if not self._complete:
+            raise RuntimeError(f"{self.folder}: read before the scan finished streaming")
+        if self._xyz is None or self._tiles is None:
+            self._xyz = np.memmap(self.folder / "xyz.f32", dtype=np.float32, mode="r").reshape(
+                -1, 3
+            )
+            self._tiles = np.memmap(self.folder / "tiles.i64", dtype=np.int64, mode="r")
+        return np.asarray(self._xyz[point_indices]), np.asarray(self._tiles[point_indices])

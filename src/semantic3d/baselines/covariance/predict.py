@@ -24,9 +24,11 @@ from semantic3d.baselines.common.run import (
     PredictionRunSet,
     describe_hardware,
 )
-from semantic3d.baselines.covariance.model import CovarianceModel
+from semantic3d.baselines.covariance.context import row_centroids
+from semantic3d.baselines.covariance.model import CovarianceModel, point_tiles
 from semantic3d.core.pointcloud import PointCloud
 from semantic3d.features.multiscale import compute_multiscale_features
+from semantic3d.features.pyramid import grid_origin
 
 __all__ = [
     "HardwareInfo",
@@ -44,4 +46,13 @@ __all__ = [
 def predict_cloud(model: CovarianceModel, cloud: PointCloud) -> NDArray[np.uint8]:
     """Label values of every point of an in-memory cloud."""
     table = compute_multiscale_features(cloud, config=model.config.features)
-    return model.predict_rows(table.values)[table.point_row]
+    if not model.context.enabled or cloud.n_points == 0:
+        return model.predict_rows(table.values)[table.point_row]
+    origin = grid_origin(
+        cloud.xyz[0], coarsest_voxel_size_m=model.config.features.coarsest_voxel_size_m
+    )
+    row_tile = np.zeros(table.n_rows, np.int64)
+    row_tile[table.point_row] = point_tiles(cloud.xyz, origin=origin, config=model.config)
+    relative = (cloud.xyz - origin).astype(np.float32)
+    row_xyz = row_centroids(relative, table.point_row, table.n_rows)
+    return model.predict_rows(table.values, row_xyz=row_xyz, row_tile=row_tile)[table.point_row]

@@ -237,7 +237,8 @@ def cast_rays(
     if not np.all(norms > 0.0):
         raise SimulationConfigError("cast_rays: expected non-zero direction vectors, found zeros")
     dirs = np.ascontiguousarray(dirs / norms)
-    times = np.ascontiguousarray(np.broadcast_to(np.asarray(times_s, np.float64), len(dirs)))
+    # A writable copy: a read-only view would be another compilation of the kernel.
+    times = np.array(np.broadcast_to(np.asarray(times_s, np.float64), len(dirs)))
     ray_ids = np.arange(len(dirs), dtype=np.uint64)
     key = station_key(seed, Station(1, (0.0, 0.0, 0.0)))
     distance, hit = cast_kernel(

@@ -1,0 +1,104 @@
+"""Context steps: voxel-mean smoothing and alpha-expansion of a Potts energy."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+
+from semantic3d.baselines.covariance.context import (
+    alpha_expansion,
+    knn_edges,
+    potts_energy,
+    smooth_probabilities,
+    unary_costs,
+)
+from semantic3d.core.errors import ConfigError, ShapeError
+
+
+def test_smoothing_mixes_each_row_with_its_voxel_means() -> None:
+    proba = np.array([[1.0, 0.0], [0.0, 1.0], [0.5, 0.5]])
+    level_a = np.array([0, 0, 1])  # rows 0 and 1 share a voxel
+    level_b = np.array([0, 0, 0])
+    one = smooth_probabilities(proba, [level_a], weight=0.5)
+    np.testing.assert_allclose(one, [[0.75, 0.25], [0.25, 0.75], [0.5, 0.5]])
+    two = smooth_probabilities(proba, [level_a, level_b], weight=1.0)
+    mean_b = proba.mean(axis=0)
+    expected = 0.5 * np.array([[0.5, 0.5], [0.5, 0.5], [0.5, 0.5]]) + 0.5 * mean_b
+    np.testing.assert_allclose(two, expected)
+    np.testing.assert_allclose(two.sum(axis=1), 1.0)
+    np.testing.assert_array_equal(smooth_probabilities(proba, [level_a], weight=0.0), proba)
+
+
+@pytest.mark.parametrize(
+    ("proba", "ancestors", "weight", "error", "match"),
+    [
+        (np.ones(3), [np.zeros(3, np.int64)], 0.5, ShapeError, "expected \\(n_rows, n_classes\\)"),
+        (np.ones((3, 2)), [np.zeros(2, np.int64)], 0.5, ShapeError, "expected \\(3,\\) per level"),
+        (np.ones((3, 2)), [np.zeros(3, np.int64)], 1.5, ConfigError, "weight: expected a value"),
+    ],
+)
+def test_smoothing_rejects_bad_input(proba, ancestors, weight, error, match) -> None:  # type: ignore[no-untyped-def]
+    with pytest.raises(error, match=match):
+        smooth_probabilities(proba, ancestors, weight=weight)
+
+
+def test_knn_edges_are_unique_undirected_pairs() -> None:
+    xyz = np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0], [10, 0, 0], [10, 0, 0]])
+    edges = knn_edges(xyz, k=1)
+    assert np.all(edges[:, 0] < edges[:, 1])
+    assert len({tuple(e) for e in edges}) == edges.shape[0]
+    assert {(3, 4), (0, 1)} <= {tuple(e) for e in edges}
+    assert knn_edges(xyz[:1], k=4).shape == (0, 2)
+
+
+def test_alpha_expansion_lowers_the_energy_to_the_optimum_of_small_graphs() -> None:
+    rng = np.random.default_rng(0)
+    for _ in range(30):
+        unary = rng.random((6, 3)) * 2
+        pairs = [(i, j) for i in range(6) for j in range(i + 1, 6) if rng.random() < 0.5]
+        edges = np.array(pairs, np.int64).reshape(-1, 2)
+        weight = float(rng.random() * 1.5)
+        labels = alpha_expansion(unary, edges, weight=weight, max_sweeps=10)
+        start = potts_energy(unary, edges, unary.argmin(axis=1), weight=weight)
+        found = potts_energy(unary, edges, labels, weight=weight)
+        best = min(
+            potts_energy(unary, edges, np.array(c), weight=weight)
+            for c in itertools.product(range(3), repeat=6)
+        )
+        assert found <= start + 1e-12
+        assert found <= 2 * best + 1e-12  # the Potts bound of alpha-expansion
+        assert found == pytest.approx(best)  # exact on these small graphs
+
+
+def test_alpha_expansion_cleans_isolated_noise_and_keeps_row_order() -> None:
+    # A chain of 200 nodes, left half class 0, right half class 1, with flipped nodes.
+    n = 200
+    truth = (np.arange(n) >= n // 2).astype(np.int64)
+    rng = np.random.default_rng(1)
+    noisy = truth.copy()
+    flipped = rng.choice(n, size=20, replace=False)
+    noisy[flipped] = 1 - noisy[flipped]
+    proba = np.full((n, 2), 0.3)
+    proba[np.arange(n), noisy] = 0.7
+    edges = np.stack([np.arange(n - 1), np.arange(1, n)], axis=1)
+    unary = unary_costs(proba)
+    labels = alpha_expansion(unary, edges, weight=1.0)
+    assert potts_energy(unary, edges, labels, weight=1.0) < potts_energy(
+        unary, edges, noisy, weight=1.0
+    )
+    assert np.count_nonzero(labels != truth) < np.count_nonzero(noisy != truth)
+    # Permuting the nodes permutes the labels: the result is in input order.
+    order = rng.permutation(n)
+    inverse = np.argsort(order)
+    permuted = alpha_expansion(unary[order], inverse[edges], weight=1.0)
+    np.testing.assert_array_equal(permuted, labels[order])
+    np.testing.assert_array_equal(alpha_expansion(unary, edges, weight=0.0), noisy)
+
+
+def test_alpha_expansion_rejects_bad_input() -> None:
+    with pytest.raises(ShapeError, match="unary: expected \\(n, n_classes\\)"):
+        alpha_expansion(np.ones(4), np.empty((0, 2), np.int64), weight=1.0)
+    with pytest.raises(ConfigError, match="weight: expected >= 0"):
+        alpha_expansion(np.ones((4, 2)), np.empty((0, 2), np.int64), weight=-1.0)
