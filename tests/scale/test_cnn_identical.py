@@ -11,7 +11,7 @@ import pytest
 
 from semantic3d.baselines.common.submission import ScanToLabel
 from semantic3d.scale.cluster import DaskCluster
-from semantic3d.scale.predict_cnn import predict_scans_with_cnn_on_cluster
+from semantic3d.scale.predict_cnn import ClusterCnnPredictor
 
 torch = pytest.importorskip("torch")
 
@@ -61,8 +61,11 @@ def test_cnn_predict_many_scans_identical(
     ]
     single = predict_scans(model, scans, tmp_path / "single")
     (tmp_path / "scratch").mkdir()
-    distributed = predict_scans_with_cnn_on_cluster(
-        model, scans, tmp_path / "cluster", cluster=cluster, workdir=tmp_path / "scratch"
+    distributed = predict_scans(
+        ClusterCnnPredictor(model, cluster),
+        scans,
+        tmp_path / "cluster",
+        workdir=tmp_path / "scratch",
     )
     for scan, run in zip(scans, distributed.runs, strict=True):
         written = tmp_path / "cluster" / scan.output_name

@@ -10,7 +10,8 @@ the store, reads a tile with the halo of the cubes' reach and labels its points 
 same :meth:`~semantic3d.baselines.cnn.model.CnnModel.label_tile` the single-process path
 runs. Cubes and the network run on the workers (torch threads set from the worker's
 thread count); only tile keys go out and ``(indices, labels)`` come back, and the label
-buffer writes ``.labels`` in the input's point order, byte for byte those of one process.
+buffer writes ``.labels`` in the input's point order, byte for byte those of one process:
+``predict_scans(ClusterCnnPredictor(model, cluster), scans, out, workdir=SHARED)``.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from __future__ import annotations
 import pickle
 import shutil
 import uuid
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Iterable, Iterator
 from functools import lru_cache, partial
 from itertools import chain
 from pathlib import Path
@@ -27,19 +28,13 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from semantic3d.baselines.common.prediction import (
-    LabelledBlock,
-    RunProgress,
-    predict_scans,
-)
-from semantic3d.baselines.common.run import PredictionRunSet
-from semantic3d.baselines.common.submission import ScanToLabel
+from semantic3d.baselines.common.prediction import LabelledBlock
 from semantic3d.core.pointcloud import PointCloud
 from semantic3d.scale.cluster import DaskCluster, MapProgress
 from semantic3d.spatial.grid import TileGrid, TileKey
 from semantic3d.spatial.store import TileStore, TileStoreWriter
 
-__all__ = ["ClusterCnnPredictor", "label_cnn_tile", "predict_scans_with_cnn_on_cluster"]
+__all__ = ["ClusterCnnPredictor", "label_cnn_tile"]
 
 MODEL_FILE = "cnn-model-{}.pickle"
 """The model as the workers read it, in the scan's scratch folder."""
@@ -131,26 +126,3 @@ def _load_model(path: str) -> Any:
 @lru_cache(maxsize=2)
 def _open_store(path: str) -> TileStore:
     return TileStore(path)
-
-
-def predict_scans_with_cnn_on_cluster(
-    model: Any,
-    scans: Sequence[ScanToLabel],
-    out: str | Path,
-    *,
-    cluster: DaskCluster,
-    workdir: str | Path | None = None,
-    progress: RunProgress | None = None,
-    overwrite: bool = False,
-) -> PredictionRunSet:
-    """:func:`~semantic3d.baselines.common.prediction.predict_scans` with a CNN model's
-    tiles on ``cluster``; ``workdir`` must be a folder the workers see (shared filesystem)
-    unless the cluster runs on this machine."""
-    return predict_scans(
-        ClusterCnnPredictor(model, cluster),
-        scans,
-        out,
-        workdir=workdir,
-        progress=progress,
-        overwrite=overwrite,
-    )
