@@ -12,7 +12,15 @@ In one run, on one simulated scan (``--points``, default 200 k, street scene; ti
   ``LocalCluster`` of single-threaded worker processes (started and warmed up before the
   clock starts); the labels are checked byte for byte against the single run;
 - per-task overhead: a no-op mapped over ``--tasks`` items on one worker
-  (:meth:`DaskCluster.map`), wall time per task.
+  (:meth:`DaskCluster.map`), wall time per task;
+- training features (``--train-points`` per class over two simulated scans of
+  ``--points`` each): :func:`build_training_set` in one process against
+  :func:`semantic3d.scale.training.build_training_set_on_cluster` on 1 and 2 workers
+  (arrays checked equal);
+- CNN prediction (``--cnn-points``, the default configuration's 5 scales of 16³ cubes,
+  an untrained network: its cost does not depend on the weights): one process against
+  :class:`semantic3d.scale.predict_cnn.ClusterCnnPredictor` on 1 and 2 workers (labels
+  checked byte for byte); ``--cnn-points 0`` leaves it out.
 
 Wall seconds, CPU seconds (this process plus the workers) and points/s. The machine's
 load is printed: timings on a loaded machine are noisy, compare rows of one run only.
@@ -77,6 +85,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--points", type=int, default=200_000)
     parser.add_argument("--tasks", type=int, default=400)
+    parser.add_argument("--train-points", type=int, default=20_000, help="Per class.")
+    parser.add_argument("--cnn-points", type=int, default=4_000)
     parser.add_argument(
         "--tile-size", type=float, default=25.6, help="Tile edge in metres (the default's)."
     )
@@ -167,6 +177,9 @@ def main() -> None:
                         "cpu_ms": 1000 * cpu / args.tasks,
                     }
                     print(f"per-task overhead {1000 * wall / args.tasks:.2f} ms wall")
+        _bench_training(folder, args, rows)
+        if args.cnn_points:
+            _bench_cnn(folder, args, rows)
     single = rows["single process (all cores)"]["wall_s"]
     single1 = rows["single process (1 thread)"]["wall_s"]
     summary = {
@@ -178,6 +191,13 @@ def main() -> None:
         "worker_cpu_s_per_point": (rows["1 worker(s)"]["cpu_s"]) / n_points,
         "client_s_per_point": rows["client part (tile store)"]["wall_s"] / n_points,
     }
+    for job in ("train features", "cnn predict"):
+        if f"{job}: single process" in rows:
+            one, two = rows[f"{job}: 1 worker(s)"]["wall_s"], rows[f"{job}: 2 worker(s)"]["wall_s"]
+            alone = rows[f"{job}: single process"]["wall_s"]
+            summary[f"{job}: one worker overhead"] = one / alone - 1
+            summary[f"{job}: two worker speed-up vs single"] = alone / two
+            summary[f"{job}: two worker speed-up vs one worker"] = one / two
     for key, value in summary.items():
         print(f"{key:40s} {value:.4g}")
     OUT.mkdir(parents=True, exist_ok=True)
@@ -191,6 +211,107 @@ def main() -> None:
         "summary": summary,
     }
     (OUT / "bench_scale.json").write_text(json.dumps(result, indent=2) + "\n")
+
+
+def _record(rows: dict[str, dict[str, float]], name: str, wall: float, cpu: float, n: int) -> None:
+    rows[name] = {"wall_s": wall, "cpu_s": cpu, "points_per_s": n / wall}
+    print(f"{name:36s} {wall:8.2f} s wall {cpu:8.2f} s CPU {n / wall:12,.0f} pts/s")
+
+
+def _bench_training(
+    folder: Path, args: argparse.Namespace, rows: dict[str, dict[str, float]], **_: Any
+) -> None:
+    """Training features of two scans: one process against 1 and 2 workers."""
+    import numpy as np
+
+    from semantic3d.baselines.covariance.training import build_training_set, find_labelled_scans
+    from semantic3d.datasets.simulator import simulate
+    from semantic3d.scale.cluster import ClusterSpec, connect
+    from semantic3d.scale.training import build_training_set_on_cluster
+
+    labelled = folder / "training"
+    for name, scene, seed in (("a", "street", 5), ("b", "village", 6)):
+        scan = simulate(scene, out=folder / f"sim-{name}", n_points=args.points, seed=seed).scans[0]
+        labelled.mkdir(exist_ok=True)
+        for path in (scan.points_path, scan.labels_path):
+            path.rename(labelled / f"{name}{path.suffix}")
+    scans = find_labelled_scans(labelled)
+    config = _config(args.tile_size)
+    config = dataclasses.replace(
+        config,
+        sampling=dataclasses.replace(config.sampling, points_per_class=args.train_points),
+    )
+    n_points = sum(1 for _ in (labelled / "a.labels").open()) + sum(
+        1 for _ in (labelled / "b.labels").open()
+    )
+    single, wall, cpu = _timed(lambda: build_training_set(scans, config=config))
+    _record(rows, "train features: single process", wall, cpu, n_points)
+    for n_workers in (1, 2):
+        with connect(ClusterSpec(n_workers=n_workers, threads_per_worker=1)) as cluster:
+            build_training_set_on_cluster(  # warm up the workers
+                scans[:1],
+                config=dataclasses.replace(
+                    config, sampling=dataclasses.replace(config.sampling, points_per_class=50)
+                ),
+                cluster=cluster,
+            )
+            found, wall, cpu = _timed(
+                lambda cluster=cluster: build_training_set_on_cluster(
+                    scans, config=config, cluster=cluster
+                ),
+                cluster,
+            )
+            _record(rows, f"train features: {n_workers} worker(s)", wall, cpu, n_points)
+            assert np.array_equal(found.features, single.features)
+            assert np.array_equal(found.labels, single.labels)
+    rows["train features: single process"]["training_rows"] = float(single.labels.size)
+
+
+def _bench_cnn(folder: Path, args: argparse.Namespace, rows: dict[str, dict[str, float]]) -> None:
+    """CNN prediction: one process against 1 and 2 workers (the default configuration)."""
+    import torch
+
+    from semantic3d.baselines.cnn.config import CnnConfig
+    from semantic3d.baselines.cnn.model import CnnModel
+    from semantic3d.baselines.cnn.network import build_network
+    from semantic3d.baselines.common.prediction import predict_scan
+    from semantic3d.datasets.simulator import simulate
+    from semantic3d.scale.cluster import ClusterSpec, connect, limit_threads
+    from semantic3d.scale.predict_cnn import ClusterCnnPredictor
+
+    scan = simulate("street", out=folder / "cnn", n_points=args.cnn_points, seed=7).scans[0]
+    warm = simulate("street", out=folder / "cnn-warm", n_points=300, seed=8).scans[0]
+    config = CnnConfig()
+    torch.manual_seed(0)
+    model = CnnModel(
+        build_network(config.cubes, config.network),
+        config=config,
+        label_values=(1, 2, 3, 4, 5, 6, 8),
+        training_scans=(),
+        seed=0,
+        n_batches_trained=0,
+        training_time_s=0.0,
+        package_version="bench",
+    )
+    limit_threads(1)  # what one single-threaded worker has
+    predict_scan(model, warm.points_path, out_path=folder / "cnn-warm.labels")
+    _, wall, cpu = _timed(
+        lambda: predict_scan(model, scan.points_path, out_path=folder / "cnn-single.labels")
+    )
+    _record(rows, "cnn predict: single process", wall, cpu, scan.n_points)
+    for n_workers in (1, 2):
+        with connect(ClusterSpec(n_workers=n_workers, threads_per_worker=1)) as cluster:
+            predictor = ClusterCnnPredictor(model, cluster)
+            predict_scan(predictor, warm.points_path, out_path=folder / f"cnn-w{n_workers}.labels")
+            out = folder / f"cnn-cluster{n_workers}.labels"
+            _, wall, cpu = _timed(
+                lambda predictor=predictor, out=out: predict_scan(
+                    predictor, scan.points_path, out_path=out
+                ),
+                cluster,
+            )
+            _record(rows, f"cnn predict: {n_workers} worker(s)", wall, cpu, scan.n_points)
+            assert filecmp.cmp(folder / "cnn-single.labels", out, shallow=False)
 
 
 if __name__ == "__main__":

@@ -7,16 +7,20 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from numpy.typing import NDArray
 
 from semantic3d.baselines.covariance.config import SamplingConfig
 from semantic3d.baselines.covariance.predict import predict_scan
 from semantic3d.baselines.covariance.training import (
+    LabelledScan,
+    ScanRows,
     TrainingDataError,
     build_training_set,
     find_labelled_scans,
     fit_model,
     run_grid_search,
     sample_training_points,
+    scan_training_rows,
 )
 from semantic3d.io.labels import read_labels
 from semantic3d.metrics import ConfusionMatrix
@@ -47,6 +51,33 @@ def test_training_set_is_class_balanced_and_grouped_by_scan(scene_dir: Path) -> 
     assert set(np.unique(training.groups)) == {0, 1}
     assert training.features.shape == (training.labels.size, SMALL_CONFIG.features.n_features)
     assert training.feature_names == SMALL_CONFIG.features.feature_names
+
+
+def test_training_set_does_not_depend_on_how_the_scans_are_cut(scene_dir: Path) -> None:
+    """Rows in ascending point order whether a scan is described whole or tile by tile."""
+    scans = find_labelled_scans(scene_dir, names=["train_a", "train_b"])
+    whole = build_training_set(scans, config=SMALL_CONFIG)
+    tiled_config = dataclasses.replace(
+        SMALL_CONFIG,
+        prediction=dataclasses.replace(
+            SMALL_CONFIG.prediction, max_points_in_memory=0, tile_size_m=4.8
+        ),
+    )
+    tiled = build_training_set(scans, config=tiled_config)
+    np.testing.assert_array_equal(tiled.features, whole.features)
+    np.testing.assert_array_equal(tiled.labels, whole.labels)
+    np.testing.assert_array_equal(tiled.groups, whole.groups)
+
+
+def test_a_rows_of_scan_hook_that_loses_points_is_caught(scene_dir: Path) -> None:
+    scans = find_labelled_scans(scene_dir, names=["train_a"])
+
+    def lossy(scan: LabelledScan, select: NDArray[np.int64]) -> ScanRows:
+        indices, rows, labels = scan_training_rows(scan, select, config=SMALL_CONFIG)
+        return indices[1:], rows[1:], labels[1:]
+
+    with pytest.raises(RuntimeError, match="train_a: rows for"):
+        build_training_set(scans, config=SMALL_CONFIG, rows_of_scan=lossy)
 
 
 def test_model_beats_a_trivial_classifier_on_a_held_out_simulated_scan(

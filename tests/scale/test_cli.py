@@ -108,3 +108,44 @@ def test_without_options_dask_is_not_imported(scan_dir: Path, tmp_path: Path) ->
         [sys.executable, "-c", script], capture_output=True, text=True, check=True
     )
     assert done.stdout.strip() == "[]"
+
+
+def test_train_on_a_running_scheduler_gives_the_same_model(
+    cluster: DaskCluster, scan_dir: Path, tmp_path: Path
+) -> None:
+    from semantic3d.baselines.covariance.persistence import load_model
+    from semantic3d.baselines.covariance.training import build_training_set, find_labelled_scans
+
+    config = tmp_path / "tiny.toml"
+    config.write_text(
+        "[features]\nbase_voxel_size_m = 0.1\nn_levels = 5\n"
+        "[forest]\nn_estimators = 4\nmax_depth = 10\n"
+        "[sampling]\npoints_per_class = 150\n"
+        "[prediction]\ntile_size_m = 4.8\n"
+    )
+    common = ["baseline", "covariance", "train", "--data", str(scan_dir), "--config", str(config)]
+    common += ["--scans", "train,other"]
+    plain = runner.invoke(app, [*common, "--out", str(tmp_path / "a.s3d")])
+    address = cluster.client.scheduler.address
+    remote = runner.invoke(
+        app,
+        [
+            *common,
+            "--out",
+            str(tmp_path / "b.s3d"),
+            "--scheduler",
+            address,
+            "--workdir",
+            str(tmp_path / "w"),
+        ],
+    )
+    assert plain.exit_code == remote.exit_code == 0, remote.output
+    assert f"Dask: {address}" in remote.output and "trained on 2 scans" in remote.output
+    single, distributed = load_model(tmp_path / "a.s3d"), load_model(tmp_path / "b.s3d")
+    assert distributed.n_training_points == single.n_training_points
+    scans = find_labelled_scans(scan_dir, names=["test"])
+    rows = build_training_set(scans, config=single.config).features
+    np.testing.assert_array_equal(
+        distributed.classifier.predict_proba(rows), single.classifier.predict_proba(rows)
+    )
+    assert list((tmp_path / "w").iterdir()) == []

@@ -7,6 +7,7 @@ from __future__ import annotations
 import contextlib
 import filecmp
 import os
+import platform
 import signal
 import socket
 import subprocess
@@ -162,3 +163,27 @@ def test_killed_worker_job_finishes_identical(
     assert killed
     assert killed[0] not in client.scheduler_info()["workers"]  # that worker is gone
     assert filecmp.cmp(expected.labels_path, run.labels_path, shallow=False)
+
+
+def _allocator_state() -> tuple[str | None, int | None]:
+    from semantic3d.scale import cluster as cluster_module
+
+    return os.environ.get("MALLOC_TRIM_THRESHOLD_"), cluster_module._LIMITED.get("allocator")
+
+
+def test_workers_get_the_allocator_thresholds_back(cluster: DaskCluster) -> None:
+    """Dask's nanny sets MALLOC_TRIM_THRESHOLD_; the first task undoes its cost (glibc)."""
+    list(cluster.map(abs, [1, 2, 3, 4]))
+    states = cluster.client.run(_allocator_state)
+    assert len(states) == 2
+    for variable, relaxed in states.values():
+        assert variable is not None  # the nanny's environment, which made tiles 1.7x slower
+        if sys.platform.startswith("linux") and platform.libc_ver()[0] == "glibc":
+            assert relaxed == 1
+
+
+def test_the_allocator_is_left_alone_outside_a_worker(monkeypatch: pytest.MonkeyPatch) -> None:
+    from semantic3d.scale.cluster import relax_allocator
+
+    monkeypatch.delenv("MALLOC_TRIM_THRESHOLD_", raising=False)
+    assert relax_allocator() is False

@@ -10,8 +10,9 @@ import dataclasses
 import json
 import math
 from enum import StrEnum
+from functools import partial
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import typer
 
@@ -94,13 +95,23 @@ def train(
         "are recorded in the model file.",
     ),
     overwrite: bool = typer.Option(False, "--overwrite", help=_OVERWRITE_HELP),
+    workdir: Path | None = typer.Option(
+        None, "--workdir", help="Scratch folder for tiles (with --scheduler: one the workers see)."
+    ),
+    scheduler: str | None = scheduler_option(),
+    workers: int | None = workers_option(),
 ) -> None:
-    """Train on labelled scans (class-balanced sample) and save the model."""
+    """Train on labelled scans (class-balanced sample) and save the model.
+
+    With --scheduler or --workers the scans are read and the training points described on
+    the Dask cluster, tile by tile; the forest is fitted here. The model is the same.
+    """
     with guarded():
         refuse_existing([out], overwrite=overwrite)
         from semantic3d.baselines.covariance.persistence import save_model
         from semantic3d.baselines.covariance.training import (
             find_labelled_scans,
+            scan_training_rows,
             train_covariance_model,
         )
 
@@ -110,12 +121,25 @@ def train(
                 config, grid_search=dataclasses.replace(config.grid_search, select_forest=True)
             )
         labelled = find_labelled_scans(data, names=_scan_names(scans))
-        with progress_bar() as bar:
+        with open_cluster(scheduler, workers) as cluster, progress_bar() as bar:
             task = bar.add_task("features of training points", total=len(labelled))
+            hooks: dict[str, Any] = {}
+            if cluster is not None:  # the same rows, described by the workers
+                from semantic3d.scale.training import ClusterRowsOfScan
+
+                hooks = {
+                    "map_scans": cluster.map,
+                    "rows_of_scan": ClusterRowsOfScan(config, cluster, workdir=workdir),
+                }
+            elif workdir is not None:
+                hooks = {
+                    "rows_of_scan": partial(scan_training_rows, config=config, workdir=workdir)
+                }
             model = train_covariance_model(
                 labelled,
                 config=config,
                 progress=lambda _stage, done, total: bar.update(task, completed=done, total=total),
+                **hooks,
             )
         save_model(model, out)
         if model.grid_search is not None:

@@ -26,12 +26,17 @@ if TYPE_CHECKING:
         predict_scans_on_cluster,
     )
     from semantic3d.scale.simulate import simulate_on_cluster
+    from semantic3d.scale.training import (
+        build_training_set_on_cluster,
+        train_covariance_model_on_cluster,
+    )
 
 __all__ = [
     "ClusterError",
     "ClusterPredictor",
     "ClusterSpec",
     "DaskCluster",
+    "build_training_set_on_cluster",
     "compute_label_agreement_on_cluster",
     "connect",
     "convert_files_on_cluster",
@@ -39,6 +44,7 @@ __all__ = [
     "predict_scan_on_cluster",
     "predict_scans_on_cluster",
     "simulate_on_cluster",
+    "train_covariance_model_on_cluster",
 ]
 
 __getattr__, __dir__ = lazy_exports(
@@ -55,5 +61,7 @@ __getattr__, __dir__ = lazy_exports(
         "predict_scans_on_cluster": "semantic3d.scale.predict",
         "convert_files_on_cluster": "semantic3d.scale.convert",
         "simulate_on_cluster": "semantic3d.scale.simulate",
+        "build_training_set_on_cluster": "semantic3d.scale.training",
+        "train_covariance_model_on_cluster": "semantic3d.scale.training",
     },
 )

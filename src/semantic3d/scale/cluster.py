@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import logging
 import os
+import sys
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from types import TracebackType
@@ -34,6 +35,7 @@ __all__ = [
     "MapProgress",
     "connect",
     "limit_threads",
+    "relax_allocator",
 ]
 
 logger = logging.getLogger(__name__)
@@ -241,9 +243,44 @@ def _task_keys(function: Callable[..., Any], total: int) -> list[str]:
 
 
 def _run_task(function: Callable[[T], R], item: T) -> R:
-    """What a worker runs: limit the threads, then the task."""
+    """What a worker runs: limit the threads (and tune the allocator), then the task."""
     limit_threads()
+    if "allocator" not in _LIMITED:
+        _LIMITED["allocator"] = int(relax_allocator())
     return function(item)
+
+
+_M_TRIM_THRESHOLD = -1
+_M_MMAP_THRESHOLD = -3
+"""``mallopt`` parameter numbers (glibc's ``malloc.h``)."""
+
+
+def relax_allocator(mmap_threshold: int = 32 << 20, trim_threshold: int = 64 << 20) -> bool:
+    """Give glibc's allocator back the thresholds it settles at by itself; True if done.
+
+    Dask's nanny starts workers with ``MALLOC_TRIM_THRESHOLD_`` set (64 KiB), and per
+    ``mallopt(3)`` setting it turns off glibc's dynamic mmap threshold: every array over
+    128 KiB is then a fresh ``mmap``, its pages faulted in and zeroed on each allocation.
+    The per-tile kernels allocate many such arrays (the graph cut's most of all), and a
+    tile took 1.7-1.9x the time it takes in an ordinary process. These values are the
+    ones glibc's dynamic rule reaches on 64-bit Linux (32 MiB, and twice that for the
+    trim): freed memory up to 64 MiB per worker stays for reuse. No library exposes
+    ``mallopt``, hence ``ctypes``; elsewhere (not glibc, or the variable unset) nothing
+    is changed.
+    """
+    if not sys.platform.startswith("linux") or "MALLOC_TRIM_THRESHOLD_" not in os.environ:
+        return False
+    import ctypes
+    import ctypes.util
+
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        mallopt = libc.mallopt
+    except (OSError, AttributeError):  # not glibc (musl has no mallopt)
+        return False
+    return bool(mallopt(_M_MMAP_THRESHOLD, mmap_threshold)) and bool(
+        mallopt(_M_TRIM_THRESHOLD, trim_threshold)
+    )
 
 
 _LIMITED: dict[str, int] = {}
@@ -263,7 +300,6 @@ def limit_threads(n_threads: int | None = None) -> int:
             n_threads = int(get_worker().state.nthreads)
         except (ImportError, ValueError):
             n_threads = 1
-    import sys
 
     numba = sys.modules.get("numba")
     if numba is not None:
@@ -284,7 +320,6 @@ def limit_threads(n_threads: int | None = None) -> int:
 def process_memory() -> tuple[int, int]:
     """This process's resident and peak resident memory, in bytes (Linux, macOS)."""
     import resource
-    import sys
 
     import psutil
 

@@ -13,8 +13,10 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
+from functools import partial
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -31,15 +33,20 @@ from semantic3d.features.scan import iter_scan_features
 
 __all__ = [
     "GridSearchResult",
+    "ItemMapper",
     "LabelledScan",
+    "RowsOfScan",
+    "ScanRows",
     "TrainingDataError",
     "TrainingSet",
     "build_training_set",
     "count_scan_labels",
     "find_labelled_scans",
     "fit_model",
+    "merge_scan_rows",
     "run_grid_search",
     "sample_training_points",
+    "scan_training_rows",
     "train_covariance_model",
 ]
 
@@ -125,17 +132,126 @@ def count_scan_labels(scan: LabelledScan) -> NDArray[np.int64]:
     return counts
 
 
+ScanRows = tuple[NDArray[np.int64], NDArray[np.float32], NDArray[np.uint8]]
+"""One scan's sampled rows: ``(point_indices ascending, features, label values)``."""
+
+RowsOfScan = Callable[[LabelledScan, NDArray[np.int64]], ScanRows]
+"""``rows_of_scan(scan, select)``: the feature rows of the points ``select`` of ``scan``."""
+
+ItemMapper = Callable[[Callable[[Any], Any], Sequence[Any]], Iterable[Any]]
+"""``map_items(function, items)``: results in input order (e.g. a Dask cluster's map)."""
+
+
 def build_training_set(
     scans: Sequence[LabelledScan],
     *,
     config: CovarianceConfig,
     progress: Progress | None = None,
+    map_scans: ItemMapper | None = None,
+    rows_of_scan: RowsOfScan | None = None,
 ) -> TrainingSet:
-    """Sample training points class-balanced over ``scans`` and compute their features."""
+    """Sample training points class-balanced over ``scans`` and compute their features.
+
+    Each scan's rows are in ascending point order whether the scan was described whole or
+    tile by tile (tiled rows equal whole-scan rows), so the training set, and the forest
+    fitted on it, do not depend on how the scan was cut or where it was described.
+
+    Args:
+        scans: the labelled training scans.
+        config: sampling, feature and prediction (tiling) settings.
+        progress: called as scans are described.
+        map_scans: reads the scans' labels elsewhere (counting them, then finding the
+            drawn points; e.g. on a Dask cluster) instead of one after another here.
+        rows_of_scan: computes one scan's rows elsewhere (default
+            :func:`scan_training_rows` here); same rows.
+    """
     started = time.perf_counter()
     if not scans:
         raise TrainingDataError("training needs at least one labelled scan")
-    counts = np.stack([count_scan_labels(scan) for scan in scans])
+    mapper: ItemMapper = map_scans if map_scans is not None else _map_here
+    counts = np.stack(list(mapper(count_scan_labels, list(scans))))
+    drawn = sample_training_points(
+        counts,
+        points_per_class=config.sampling.points_per_class,
+        classes=_classes_to_draw(counts, scans, config),
+        seed=config.sampling.seed,
+    )
+    selections = list(mapper(_drawn_point_indices, list(zip(scans, drawn, strict=True))))
+    describe = rows_of_scan or partial(scan_training_rows, config=config)
+    features, labels, groups = [], [], []
+    for number, (scan, select) in enumerate(zip(scans, selections, strict=True)):
+        if progress is not None:
+            progress("features", number, len(scans))
+        if select.size == 0:
+            continue
+        indices, rows, values = describe(scan, select)
+        if not np.array_equal(indices, select):  # a broken rows_of_scan, never the data
+            raise RuntimeError(f"{scan.name}: rows for {indices.size} of {select.size} points")
+        features.append(rows)
+        labels.append(values)
+        groups.append(np.full(indices.size, number, np.int64))
+        logger.info("%s: %d training points", scan.name, select.size)
+    if progress is not None:
+        progress("features", len(scans), len(scans))
+    return TrainingSet(
+        features=np.concatenate(features),
+        labels=np.concatenate(labels),
+        groups=np.concatenate(groups),
+        scan_names=tuple(s.name for s in scans),
+        feature_names=config.features.feature_names,
+        feature_time_s=time.perf_counter() - started,
+    )
+
+
+def scan_training_rows(
+    scan: LabelledScan,
+    select: NDArray[np.int64],
+    *,
+    config: CovarianceConfig,
+    workdir: str | Path | None = None,
+) -> ScanRows:
+    """Feature rows and labels of the points ``select`` (sorted, unique) of ``scan``, in
+    ascending point order; the scan is described whole or tile by tile as
+    ``config.prediction`` says (tiles in a scratch folder under ``workdir``)."""
+    blocks = [
+        (block.point_indices, block.table.point_values(), block.labels)
+        for block in iter_scan_features(
+            scan.iter_points(chunk_size=config.prediction.chunk_size),
+            config=config.features,
+            select=select,
+            max_points_in_memory=config.prediction.max_points_in_memory,
+            tile_size_m=config.prediction.tile_size_m,
+            workdir=workdir,
+        )
+    ]
+    return merge_scan_rows(blocks)
+
+
+def merge_scan_rows(
+    blocks: Sequence[tuple[NDArray[np.int64], NDArray[np.float32], NDArray[np.uint8] | None]],
+) -> ScanRows:
+    """One scan's row blocks (tiles in any order) as one set in ascending point order."""
+    if not blocks:
+        return np.empty(0, np.int64), np.empty((0, 0), np.float32), np.empty(0, np.uint8)
+    indices = np.concatenate([block[0] for block in blocks])
+    order = np.argsort(indices, kind="stable")
+    rows = np.concatenate([block[1] for block in blocks])[order]
+    labels = []
+    for block in blocks:
+        if block[2] is None:  # the scan is read with its labels: never None here
+            raise RuntimeError("feature rows without labels")
+        labels.append(block[2])
+    return indices[order], rows, np.concatenate(labels)[order]
+
+
+def _map_here(function: Callable[[Any], Any], items: Sequence[Any]) -> Iterator[Any]:
+    return map(function, items)
+
+
+def _classes_to_draw(
+    counts: NDArray[np.int64], scans: Sequence[LabelledScan], config: CovarianceConfig
+) -> list[int]:
+    """The label values to sample: ``[sampling] classes`` or every one present."""
     present = [v for v in range(1, N_CLASSES + 1) if counts[:, v].sum() > 0]
     classes = list(config.sampling.classes) or present
     missing = [v for v in classes if counts[:, v].sum() == 0]
@@ -150,41 +266,14 @@ def build_training_set(
             f"training needs at least 2 labelled classes, found {classes or 'none'} "
             f"in {[s.name for s in scans]}"
         )
-    drawn = sample_training_points(
-        counts,
-        points_per_class=config.sampling.points_per_class,
-        classes=classes,
-        seed=config.sampling.seed,
-    )
-    features, labels, groups = [], [], []
-    for number, scan in enumerate(scans):
-        if progress is not None:
-            progress("features", number, len(scans))
-        select = _ordinals_to_indices(scan, drawn[number])
-        if select.size == 0:
-            continue
-        for block in iter_scan_features(
-            scan.iter_points(chunk_size=config.prediction.chunk_size),
-            config=config.features,
-            select=select,
-            max_points_in_memory=config.prediction.max_points_in_memory,
-            tile_size_m=config.prediction.tile_size_m,
-        ):
-            assert block.labels is not None  # read with labels_path
-            features.append(block.table.point_values())
-            labels.append(block.labels)
-            groups.append(np.full(block.point_indices.size, number, np.int64))
-        logger.info("%s: %d training points", scan.name, select.size)
-    if progress is not None:
-        progress("features", len(scans), len(scans))
-    return TrainingSet(
-        features=np.concatenate(features),
-        labels=np.concatenate(labels),
-        groups=np.concatenate(groups),
-        scan_names=tuple(s.name for s in scans),
-        feature_names=config.features.feature_names,
-        feature_time_s=time.perf_counter() - started,
-    )
+    return classes
+
+
+def _drawn_point_indices(
+    item: tuple[LabelledScan, dict[int, NDArray[np.int64]]],
+) -> NDArray[np.int64]:
+    scan, ordinals = item
+    return _ordinals_to_indices(scan, ordinals)
 
 
 def fit_model(
@@ -224,15 +313,26 @@ def train_covariance_model(
     *,
     config: CovarianceConfig,
     progress: Progress | None = None,
+    map_scans: ItemMapper | None = None,
+    rows_of_scan: RowsOfScan | None = None,
 ) -> CovarianceModel:
     """Sample, compute features and fit: the whole training run.
+
+    ``map_scans`` and ``rows_of_scan`` read the scans and describe the sampled points
+    elsewhere (see :func:`build_training_set`); the fit and any grid search run here.
 
     With ``config.grid_search.select_forest`` the forest's parameters are chosen first by
     :func:`run_grid_search` on the same sample (folds grouped by scan) and the model
     is fitted with the best ones, which replace ``config.forest`` in the model's
     configuration; the search's scores are kept in ``model.grid_search``.
     """
-    training = build_training_set(scans, config=config, progress=progress)
+    training = build_training_set(
+        scans,
+        config=config,
+        progress=progress,
+        map_scans=map_scans,
+        rows_of_scan=rows_of_scan,
+    )
     if not config.grid_search.select_forest:
         return fit_model(training, config=config)
     started = time.perf_counter()
