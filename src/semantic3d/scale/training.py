@@ -21,6 +21,7 @@ import tempfile
 from collections.abc import Sequence
 from functools import lru_cache, partial
 from pathlib import Path
+from typing import TypedDict
 
 import numpy as np
 from numpy.typing import NDArray
@@ -29,7 +30,9 @@ from semantic3d.baselines.common.scans import LabelledScan
 from semantic3d.baselines.covariance.config import CovarianceConfig
 from semantic3d.baselines.covariance.model import CovarianceModel
 from semantic3d.baselines.covariance.training import (
+    ItemMapper,
     Progress,
+    RowsOfScan,
     ScanRows,
     TrainingSet,
     build_training_set,
@@ -150,15 +153,8 @@ def build_training_set_on_cluster(
 
     The scans must be visible to the workers at the same paths, and ``workdir`` too.
     """
-    return build_training_set(
-        scans,
-        config=config,
-        progress=progress,
-        map_scans=cluster.map,
-        rows_of_scan=ClusterRowsOfScan(
-            config, cluster, workdir=workdir, tile_progress=tile_progress
-        ),
-    )
+    hooks = _cluster_hooks(config, cluster, workdir, tile_progress)
+    return build_training_set(scans, config=config, progress=progress, **hooks)
 
 
 def train_covariance_model_on_cluster(
@@ -172,12 +168,25 @@ def train_covariance_model_on_cluster(
 ) -> CovarianceModel:
     """:func:`~semantic3d.baselines.covariance.training.train_covariance_model` with the
     training set built on ``cluster`` (the forest, and any grid search, fitted here)."""
-    return train_covariance_model(
-        scans,
-        config=config,
-        progress=progress,
-        map_scans=cluster.map,
-        rows_of_scan=ClusterRowsOfScan(
+    hooks = _cluster_hooks(config, cluster, workdir, tile_progress)
+    return train_covariance_model(scans, config=config, progress=progress, **hooks)
+
+
+class _Hooks(TypedDict):
+    map_scans: ItemMapper
+    rows_of_scan: RowsOfScan
+
+
+def _cluster_hooks(
+    config: CovarianceConfig,
+    cluster: DaskCluster,
+    workdir: str | Path | None,
+    tile_progress: MapProgress | None,
+) -> _Hooks:
+    """The training hooks that send the scans' work to ``cluster``."""
+    return {
+        "map_scans": cluster.map,
+        "rows_of_scan": ClusterRowsOfScan(
             config, cluster, workdir=workdir, tile_progress=tile_progress
         ),
-    )
+    }
