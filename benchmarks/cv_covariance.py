@@ -25,7 +25,8 @@ Levers (``--levers``, comma separated; default all):
   them: ``default-smooth-3`` / ``-2-4`` / ``-4-6`` (probabilities mixed with their voxel
   means at those levels), ``default-crf`` (alpha-expansion of a Potts energy on the 8
   nearest level-0 voxels, 3 sweeps; ``-1sweep``: 1, as the library; ``-wide``: weights
-  2 to 32; ``-4``: weight 4 fixed), ``default-smooth-crf`` (levels 4-6 smoothing, then
+  2 to 32; ``-4``: weight 4 fixed; ``-k4`` / ``-k6``: a graph of the 4 / 6 nearest
+  voxels, weights 2 to 16), ``default-smooth-crf`` (levels 4-6 smoothing, then
   the graph cut), ``lgbm`` / ``lgbm-crf`` (LightGBM), ``hgb-es``
   (HistGradientBoosting), ``scan-norm`` (every column standardised per scan),
   ``default-dtm`` (+ height above a terrain model), ``no-scale-columns`` (without the
@@ -108,13 +109,20 @@ class Lever:
     smooth_levels: tuple[int, ...] = ()  # levels whose voxel means `smooth` mixes in
     scan_norm: bool = False  # standardise every column per scan (mean 0, std 1)
     exclude: tuple[str, ...] = ()  # feature names (any level) dropped by prefix match
+    neighbours: int = 8  # k of the context step's nearest-neighbour graph
 
     @property
     def training_key(self) -> tuple[Any, ...]:
         """Levers with equal keys share their models (they differ only in `post`)."""
         return dataclasses.astuple(
             dataclasses.replace(
-                self, post="none", smooth_levels=(), sweeps=3, smooth_weight=0.75, weights=()
+                self,
+                post="none",
+                smooth_levels=(),
+                sweeps=3,
+                smooth_weight=0.75,
+                weights=(),
+                neighbours=8,
             )
         )
 
@@ -144,6 +152,12 @@ LEVERS: dict[str, Lever] = {
     "default-crf-1sweep": Lever(DEFAULT, post="crf", sweeps=1),
     "default-crf-wide": Lever(DEFAULT, post="crf", sweeps=1, weights=(2.0, 4.0, 8.0, 16.0, 32.0)),
     "default-crf-4": Lever(DEFAULT, post="crf", sweeps=1, weights=(4.0,)),
+    "default-crf-k4": Lever(
+        DEFAULT, post="crf", sweeps=1, weights=(2.0, 4.0, 8.0, 16.0), neighbours=4
+    ),
+    "default-crf-k6": Lever(
+        DEFAULT, post="crf", sweeps=1, weights=(2.0, 4.0, 8.0, 16.0), neighbours=6
+    ),
     "default-smooth-crf": Lever(DEFAULT, post="smooth-crf", smooth_levels=(4, 5, 6)),
     "lgbm": Lever(DEFAULT, classifier="lgbm"),
     "lgbm-crf": Lever(DEFAULT, classifier="lgbm", post="crf", sweeps=1),
@@ -239,11 +253,11 @@ def ancestors_of(scan: Scan, features: FeatureConfig, level: int) -> NDArray[np.
     return result
 
 
-def edges_of(scan: Scan, features: FeatureConfig) -> NDArray[np.int64]:
-    key = (scan.name, -1)
+def edges_of(scan: Scan, features: FeatureConfig, k: int = 8) -> NDArray[np.int64]:
+    key = (scan.name, -k)
     if key not in _CONTEXT:
         xyz = build_cloud_pyramid(scan.cloud, config=features).levels[0].xyz
-        _CONTEXT[key] = knn_edges(xyz, k=8)
+        _CONTEXT[key] = knn_edges(xyz, k=k)
     result: NDArray[np.int64] = _CONTEXT[key]
     return result
 
@@ -382,7 +396,7 @@ def apply_post(
     if lever.post in ("crf", "smooth-crf") and weight > 0:
         return alpha_expansion(
             unary_costs(proba),
-            edges_of(scan, lever.features),
+            edges_of(scan, lever.features, lever.neighbours),
             weight=weight,
             max_sweeps=lever.sweeps,
         )

@@ -242,3 +242,94 @@ def test_finding_scans_to_label(data: Path, tmp_path: Path) -> None:
         SubmissionLayoutError, match="expected a challenge, one of semantic-8, reduced-8"
     ):
         find_scans_to_label(data, challenge="train")
+
+
+def test_scans_labelled_in_parallel_give_the_same_files(
+    model: CovarianceModel, data: Path, tmp_path: Path
+) -> None:
+    scans = find_scans_to_label(data)
+    seen: list[int] = []
+    alone = predict_scans(model, scans, tmp_path / "alone")
+    together = predict_scans(
+        model,
+        scans,
+        tmp_path / "together",
+        parallel_scans=2,
+        progress=lambda index, done, total: seen.append(index),
+    )
+    assert [run.scan for run in together.runs] == [run.scan for run in alone.runs]
+    for scan in scans:
+        assert (tmp_path / "together" / scan.output_name).read_bytes() == (
+            tmp_path / "alone" / scan.output_name
+        ).read_bytes()
+    assert set(seen) == {0, 1}
+    zipped = predict_scans(model, scans, tmp_path / "p.zip", parallel_scans=3)
+    with zipfile.ZipFile(tmp_path / "p.zip") as archive:
+        assert archive.namelist() == ["a.labels", "b.labels"]
+        assert archive.read("b.labels") == (tmp_path / "alone" / "b.labels").read_bytes()
+    assert zipped.n_points == alone.n_points
+
+
+def test_a_failing_scan_stops_a_parallel_run_and_leaves_nothing_partial(
+    model: CovarianceModel, data: Path, tmp_path: Path
+) -> None:
+    (data / "b.txt").write_text("1 2 3 0 0 0 0\n1 2\n")
+    scans = find_scans_to_label(data)
+    with pytest.raises(ValueError, match=r"b\.txt: line 2: expected 7 columns"):
+        predict_scans(model, scans, tmp_path / "out", parallel_scans=2)
+    # only complete files: `a` if it finished before the error, never a staged one
+    assert {p.name for p in (tmp_path / "out").iterdir()} <= {"a.labels", "a.labels.json"}
+    with pytest.raises(ValueError, match=r"b\.txt: line 2"):
+        predict_scans(model, scans, tmp_path / "p.zip", parallel_scans=2)
+    assert not (tmp_path / "p.zip").exists()
+    with pytest.raises(ValueError, match="parallel_scans: expected at least 1, found 0"):
+        predict_scans(model, scans, tmp_path / "none", parallel_scans=0)
+
+
+def test_an_interrupted_parallel_run_leaves_nothing(
+    model: CovarianceModel, data: Path, tmp_path: Path
+) -> None:
+    scans = find_scans_to_label(data)
+
+    def interrupt(index: int, done: int, total: int) -> None:
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        predict_scans(
+            model, scans, tmp_path / "out" / "p.zip", progress=interrupt, parallel_scans=2
+        )
+    assert list((tmp_path / "out").iterdir()) == []
+
+
+def test_predict_a_folder_with_parallel_scans_option(
+    model_file: Path, data: Path, tmp_path: Path
+) -> None:
+    code, output = _predict(
+        "--model",
+        str(model_file),
+        "--data",
+        str(data),
+        "--out",
+        str(tmp_path / "two"),
+        "--parallel-scans",
+        "2",
+    )
+    assert code == 0, output
+    code, output = _predict(
+        "--model",
+        str(model_file),
+        "--data",
+        str(data),
+        "--out",
+        str(tmp_path / "one"),
+        "--parallel-scans",
+        "1",
+    )
+    assert code == 0, output
+    for name in ("a.labels", "b.labels"):
+        assert (tmp_path / "two" / name).read_bytes() == (tmp_path / "one" / name).read_bytes()
+    code, output = _predict(
+        "--model", str(model_file), "--data", str(data), "--parallel-scans", "0"
+    )
+    assert code == 2
+    assert "--parallel-scans" in output

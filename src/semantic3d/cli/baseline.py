@@ -180,6 +180,14 @@ def predict(
     ),
     workdir: Path | None = typer.Option(None, "--workdir", help="Scratch folder for tiles."),
     overwrite: bool = typer.Option(False, "--overwrite", help=_OVERWRITE_HELP),
+    parallel_scans: int | None = typer.Option(
+        None,
+        "--parallel-scans",
+        min=1,
+        help="Scans labelled at a time on threads of this process (same labels; memory of "
+        "that many scans). Default 2 for a folder, 1 on a Dask cluster or where numba "
+        "has no thread-safe threading layer (TBB or OpenMP).",
+    ),
     scheduler: str | None = scheduler_option(),
     workers: int | None = workers_option(),
 ) -> None:
@@ -201,6 +209,7 @@ def predict(
             overwrite=overwrite,
             challenge=None if challenge is None else challenge.value,
             cluster_options=(scheduler, workers),
+            parallel_scans=parallel_scans,
         )
 
 
@@ -238,6 +247,7 @@ def _predict(
     overwrite: bool,
     challenge: str | None,
     cluster_options: tuple[str | None, int | None] = (None, None),
+    parallel_scans: int | None = None,
 ) -> None:
     from semantic3d.baselines.common.submission import (
         is_zip_output,
@@ -245,10 +255,22 @@ def _predict(
         refuse_existing_outputs,
     )
     from semantic3d.baselines.covariance.persistence import load_model
-    from semantic3d.baselines.covariance.predict import predict_scans
+    from semantic3d.baselines.covariance.predict import concurrent_scans_supported, predict_scans
 
     refuse_existing_outputs(planned_outputs(target, scans), overwrite=overwrite)
     model = load_model(model_path)
+    on_cluster = cluster_options != (None, None)
+    if parallel_scans is None:  # 2 where it is safe and helps
+        many = len(scans) > 1 and not on_cluster
+        parallel_scans = 2 if many and concurrent_scans_supported() else 1
+    elif parallel_scans > 1 and (on_cluster or not concurrent_scans_supported()):
+        why = (
+            "the cluster labels each scan's tiles in parallel"
+            if on_cluster
+            else "numba's threading layer here is not thread-safe: install tbb"
+        )
+        ui.console.print(f"--parallel-scans: labelling one scan at a time ({why})")
+        parallel_scans = 1
     with open_cluster(*cluster_options) as cluster, progress_bar() as bar:
         task = bar.add_task(f"labelling {plural(len(scans), 'scan')}", total=None)
 
@@ -266,7 +288,13 @@ def _predict(
 
             predictor = ClusterPredictor(model, cluster)
         result = predict_scans(
-            predictor, scans, target, workdir=workdir, progress=update, overwrite=overwrite
+            predictor,
+            scans,
+            target,
+            workdir=workdir,
+            progress=update,
+            overwrite=overwrite,
+            parallel_scans=parallel_scans,
         )
         bar.update(task, completed=result.n_points, total=result.n_points)
     _print_runs(result, zipped=is_zip_output(target), challenge=challenge)

@@ -102,3 +102,51 @@ def test_alpha_expansion_rejects_bad_input() -> None:
         alpha_expansion(np.ones(4), np.empty((0, 2), np.int64), weight=1.0)
     with pytest.raises(ConfigError, match="weight: expected >= 0"):
         alpha_expansion(np.ones((4, 2)), np.empty((0, 2), np.int64), weight=-1.0)
+
+
+def _numpy_undirected_edges(neighbours: np.ndarray) -> np.ndarray:
+    """The edges as the numpy expression the compiled kernel replaced computes them."""
+    n, k = neighbours.shape
+    first = np.repeat(np.arange(n, dtype=np.int64), k)
+    second = neighbours.ravel().astype(np.int64)
+    mutual = (neighbours[second] == first[:, None]).any(axis=1)
+    keep = (first != second) & ((first < second) | ~mutual)
+    low, high = first[keep], second[keep]
+    return np.stack([np.minimum(low, high), np.maximum(low, high)], axis=1)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_compiled_edges_equal_the_numpy_expression(seed: int) -> None:
+    from semantic3d.baselines.covariance._context_kernels import undirected_edges
+
+    rng = np.random.default_rng(seed)
+    n, k = int(rng.integers(2, 60)), int(rng.integers(1, 6))
+    neighbours = rng.integers(0, n, size=(n, k)).astype(np.int64)
+    neighbours[:, 0] = np.arange(n)  # a k-NN search lists the point itself first
+    np.testing.assert_array_equal(undirected_edges(neighbours), _numpy_undirected_edges(neighbours))
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_compiled_move_capacities_are_the_numpy_floats(seed: int) -> None:
+    from semantic3d.baselines.covariance._context_kernels import expansion_capacities
+
+    rng = np.random.default_rng(seed)
+    n, n_labels = 40, 4
+    unary = unary_costs(rng.dirichlet(np.ones(n_labels), size=n))
+    edges = knn_edges(rng.random((n, 3)), k=3)
+    current = rng.integers(0, n_labels, n).astype(np.int64)
+    weight = float(rng.random() * 5)
+    first, second = np.ascontiguousarray(edges[:, 0]), np.ascontiguousarray(edges[:, 1])
+    for alpha in range(n_labels):
+        to_source, to_sink, pair = np.empty(n), np.empty(n), np.empty(first.size)
+        expansion_capacities(unary, first, second, current, alpha, weight, to_source, to_sink, pair)
+        li, lj = current[first], current[second]
+        a, b, c = weight * (li != lj), weight * (li != alpha), weight * (alpha != lj)
+        cost0 = unary[np.arange(n), current] + np.bincount(first, a, minlength=n)
+        cost1 = unary[:, alpha] + (
+            np.bincount(first, c, minlength=n) - np.bincount(second, c, minlength=n)
+        )
+        low = np.minimum(cost0, cost1)
+        np.testing.assert_array_equal(to_source, cost1 - low)
+        np.testing.assert_array_equal(to_sink, cost0 - low)
+        np.testing.assert_array_equal(pair, b + c - a)

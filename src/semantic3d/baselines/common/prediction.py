@@ -16,8 +16,10 @@ from __future__ import annotations
 import dataclasses
 import json
 import tempfile
+import threading
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
+from concurrent.futures import FIRST_EXCEPTION, ThreadPoolExecutor, wait
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
@@ -174,6 +176,7 @@ def predict_scans(
     workdir: str | Path | None = None,
     progress: RunProgress | None = None,
     overwrite: bool = False,
+    parallel_scans: int = 1,
 ) -> PredictionRunSet:
     """Label ``scans`` with one model into a folder, or a zip archive when ``out`` ends in .zip.
 
@@ -184,12 +187,22 @@ def predict_scans(
     complete: after an error or Ctrl-C a folder holds the scans finished so far and a
     zip does not exist.
 
+    ``parallel_scans`` > 1 labels that many scans at a time, each on its own thread, for a
+    predictor whose work releases the GIL and is safe to run from several threads (the
+    covariance baseline's compiled kernels): the serial parts of one scan then overlap the
+    parallel parts of another. Every scan's labels are the same as when labelled alone;
+    memory is that of ``parallel_scans`` scans. After an error or Ctrl-C the scans being
+    labelled stop at their next block of labels and no new scan starts.
+
     Raises:
         OutputExistsError: an output exists and ``overwrite`` is False (checked before
             any work, naming the first one).
+        ValueError: ``parallel_scans`` < 1.
     """
     from semantic3d.io.formats import estimate_point_count
 
+    if parallel_scans < 1:
+        raise ValueError(f"parallel_scans: expected at least 1, found {parallel_scans}")
     started = time.perf_counter()
     out = Path(out)
     refuse_existing_outputs(planned_outputs(out, scans), overwrite=overwrite)
@@ -197,6 +210,20 @@ def predict_scans(
     runs: list[PredictionRun] = []
 
     def predict_all(folder: Path) -> None:
+        if parallel_scans > 1 and len(scans) > 1:
+            runs.extend(
+                _predict_in_threads(
+                    predictor,
+                    scans,
+                    folder,
+                    estimates,
+                    workdir=workdir,
+                    progress=progress,
+                    overwrite=overwrite or folder != out,
+                    n_threads=min(parallel_scans, len(scans)),
+                )
+            )
+            return
         for index, scan in enumerate(scans):
             before = sum(run.n_points for run in runs)
 
@@ -233,3 +260,68 @@ def predict_scans(
         out.with_name(out.name + RUN_RECORD_SUFFIX), json.dumps(result.to_dict(), indent=2) + "\n"
     )
     return result
+
+
+class _StoppedError(Exception):
+    """Raised in a scan's thread when another scan failed or the run was interrupted."""
+
+
+def _predict_in_threads(
+    predictor: Predictor,
+    scans: Sequence[ScanToLabel],
+    folder: Path,
+    estimates: list[int],
+    *,
+    workdir: str | Path | None,
+    progress: RunProgress | None,
+    overwrite: bool,
+    n_threads: int,
+) -> list[PredictionRun]:
+    """:func:`predict_scan` of every scan, ``n_threads`` at a time; runs in input order."""
+    lock = threading.Lock()
+    stop = threading.Event()
+    done = [0] * len(scans)
+
+    def label(index: int) -> PredictionRun:
+        def update(labelled: int, total: int) -> None:
+            if stop.is_set():
+                raise _StoppedError
+            with lock:
+                if total:
+                    estimates[index] = total
+                done[index] = labelled
+                if progress is not None:
+                    progress(
+                        index,
+                        sum(done),
+                        sum(max(n, d) for n, d in zip(estimates, done, strict=True)),
+                    )
+
+        if stop.is_set():
+            raise _StoppedError
+        return predict_scan(
+            predictor,
+            scans[index].points_path,
+            out_path=folder / scans[index].output_name,
+            workdir=workdir,
+            progress=update,
+            overwrite=overwrite,
+        )
+
+    pool = ThreadPoolExecutor(max_workers=n_threads, thread_name_prefix="predict-scan")
+    futures = [pool.submit(label, index) for index in range(len(scans))]
+    try:
+        # the first failure in time, not in input order, stops the others
+        finished, _ = wait(futures, return_when=FIRST_EXCEPTION)
+        for future in finished:
+            error = future.exception()
+            if error is not None and not isinstance(error, _StoppedError):
+                raise error
+        return [future.result() for future in futures]
+    except BaseException:
+        stop.set()
+        for future in futures:
+            future.cancel()
+        raise
+    finally:
+        pool.shutdown(wait=True)

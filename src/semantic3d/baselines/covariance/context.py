@@ -81,6 +81,8 @@ def knn_edges(xyz: NDArray[np.floating], *, k: int = 8) -> NDArray[np.int64]:
     """Undirected edges ``(n_edges, 2)`` joining every point to its ``k`` nearest others,
     each edge once, as ``(min, max)``."""
     pgeof: Any = require("pgeof", "ml")
+    from semantic3d.baselines.covariance._context_kernels import undirected_edges
+
     xyz = np.asarray(xyz, dtype=np.float64)
     n = xyz.shape[0]
     k = min(k, n - 1)
@@ -89,14 +91,11 @@ def knn_edges(xyz: NDArray[np.floating], *, k: int = 8) -> NDArray[np.int64]:
     # pgeof's nanoflann k-d tree: ~1.5x faster than scipy's cKDTree here.
     local = (xyz - xyz.min(axis=0)).astype(np.float32)
     found, _ = pgeof.knn_search(local, local, k + 1)
-    neighbours = np.asarray(found, dtype=np.int64)
-    first = np.repeat(np.arange(n, dtype=np.int64), k + 1)
-    second = neighbours.ravel()
     # Keep (i, j) once: from i's list when i < j, or when i is not in j's list.
-    mutual = (neighbours[second] == first[:, None]).any(axis=1)
-    keep = (first != second) & ((first < second) | ~mutual)
-    low, high = first[keep], second[keep]
-    return np.stack([np.minimum(low, high), np.maximum(low, high)], axis=1)
+    edges: NDArray[np.int64] = undirected_edges(
+        np.ascontiguousarray(found, dtype=np.int64).reshape(n, k + 1)
+    )
+    return edges
 
 
 def unary_costs(proba: NDArray[np.floating]) -> NDArray[np.float64]:
@@ -113,9 +112,27 @@ def potts_energy(
     weight: float,
 ) -> float:
     """``sum_i unary[i, labels[i]] + weight * (edges whose ends differ)``."""
-    labels = np.asarray(labels)
-    data = float(np.take_along_axis(unary, labels[:, None].astype(np.int64), axis=1).sum())
-    cut = int(np.count_nonzero(labels[edges[:, 0]] != labels[edges[:, 1]])) if edges.size else 0
+    edges = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+    return _energy(
+        np.asarray(unary, dtype=np.float64),
+        np.ascontiguousarray(edges[:, 0]),
+        np.ascontiguousarray(edges[:, 1]),
+        np.asarray(labels, dtype=np.int64),
+        weight,
+    )
+
+
+def _energy(
+    unary: NDArray[np.float64],
+    first: NDArray[np.int64],
+    second: NDArray[np.int64],
+    labels: NDArray[np.int64],
+    weight: float,
+) -> float:
+    from semantic3d.baselines.covariance._context_kernels import count_cut_edges
+
+    data = float(np.take_along_axis(unary, labels[:, None], axis=1).sum())
+    cut = int(count_cut_edges(first, second, labels)) if first.size else 0
     return data + weight * cut
 
 
@@ -154,32 +171,34 @@ def alpha_expansion(
     )
     if n == 0 or weight == 0 or edges.shape[0] == 0:
         return current
-    first, second = edges[:, 0], edges[:, 1]
-    rows = np.arange(n)
-    energy = potts_energy(unary, edges, current, weight=weight)
+    from semantic3d.baselines.covariance._context_kernels import expansion_capacities
+
+    costs: NDArray[np.float64] = np.ascontiguousarray(unary, dtype=np.float64)
+    first = np.ascontiguousarray(edges[:, 0])
+    second = np.ascontiguousarray(edges[:, 1])
+    to_source = np.empty(n, np.float64)
+    to_sink = np.empty(n, np.float64)
+    pair = np.empty(edges.shape[0], np.float64)
+    no_reverse = np.zeros(edges.shape[0], np.float64)
+    energy = _energy(costs, first, second, current, weight)
     for _ in range(max_sweeps):
         changed = False
         for alpha in range(n_labels):
-            # x = 0 keeps the current label, x = 1 takes alpha.
-            cost0 = unary[rows, current].copy()
-            cost1 = unary[:, alpha].copy()
-            li, lj = current[first], current[second]
-            a = weight * (li != lj)  # (keep, keep)
-            b = weight * (li != alpha)  # (keep, alpha)
-            c = weight * (alpha != lj)  # (alpha, keep)
-            # E = A + (C - A) x_i + (D - C) x_j + (B + C - A - D)(1 - x_i) x_j, D = 0
-            cost0 += np.bincount(first, a, minlength=n)
-            cost1 += np.bincount(first, c, minlength=n) - np.bincount(second, c, minlength=n)
-            pair = b + c - a
-            low = np.minimum(cost0, cost1)
+            # x = 0 keeps the current label, x = 1 takes alpha. With a = [l_i != l_j]
+            # (keep, keep), b = [l_i != alpha] (keep, alpha), c = [alpha != l_j]
+            # (alpha, keep), D = 0 and weights w: E = A + (C - A) x_i + (D - C) x_j
+            # + (B + C - A - D)(1 - x_i) x_j, which the kernel turns into capacities.
+            expansion_capacities(
+                costs, first, second, current, alpha, float(weight), to_source, to_sink, pair
+            )
             graph = maxflow.Graph[float](n, edges.shape[0])
             nodes = graph.add_nodes(n)
-            graph.add_grid_tedges(nodes, cost1 - low, cost0 - low)
-            graph.add_edges(first, second, pair, np.zeros_like(pair))
+            graph.add_grid_tedges(nodes, to_source, to_sink)
+            graph.add_edges(first, second, pair, no_reverse)
             graph.maxflow()
             take = graph.get_grid_segments(nodes)
             proposal = np.where(take, alpha, current)
-            proposed = potts_energy(unary, edges, proposal, weight=weight)
+            proposed = _energy(costs, first, second, proposal, weight)
             if proposed < energy - 1e-9:
                 current, energy, changed = proposal, proposed, True
         if not changed:

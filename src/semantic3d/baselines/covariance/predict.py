@@ -9,6 +9,7 @@ itself labels the streamed scan (:meth:`CovarianceModel.iter_labelled_blocks`).
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 from numpy.typing import NDArray
 
@@ -36,6 +37,7 @@ __all__ = [
     "PredictionRunSet",
     "Progress",
     "RunProgress",
+    "concurrent_scans_supported",
     "describe_hardware",
     "predict_cloud",
     "predict_scan",
@@ -56,3 +58,19 @@ def predict_cloud(model: CovarianceModel, cloud: PointCloud) -> NDArray[np.uint8
     relative = (cloud.xyz - origin).astype(np.float32)
     row_xyz = row_centroids(relative, table.point_row, table.n_rows)
     return model.predict_rows(table.values, row_xyz=row_xyz, row_tile=row_tile)[table.point_row]
+
+
+def concurrent_scans_supported() -> bool:
+    """Whether scans can be labelled on several threads at once
+    (``predict_scans(..., parallel_scans=2)``): the model's compiled kernels are then
+    launched from several threads, which numba's ``tbb`` and ``omp`` threading layers
+    allow and its ``workqueue`` fallback (no TBB, no OpenMP runtime) does not."""
+    _touch_threading_layer(np.zeros(1))
+    return str(numba.threading_layer()) != "workqueue"
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _touch_threading_layer(values: NDArray[np.float64]) -> None:  # pragma: no cover - compiled
+    """A parallel kernel's first launch picks numba's threading layer."""
+    for index in numba.prange(values.size):
+        values[index] = 0.0
