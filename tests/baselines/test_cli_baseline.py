@@ -103,7 +103,7 @@ def test_train_with_grid_search_fits_and_records_the_chosen_forest(
     assert header["config"]["forest"]["max_depth"] == chosen["max_depth"]
     assert header["config"]["forest"]["n_estimators"] == 4  # not the file's 8
     model = load_model(model_path)
-    assert model.classifier.forest_.max_depth == chosen["max_depth"]
+    assert model.classifier.params["max_depth"] == chosen["max_depth"]
     assert model.grid_search is not None and model.grid_search.best_params == chosen
 
 

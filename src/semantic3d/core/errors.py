@@ -81,3 +81,14 @@ def require(package: str, extra: str) -> object:
         return importlib.import_module(package)
     except ImportError as exc:
         raise MissingExtraError(package, extra) from exc
+
+
+def installed_version(distribution: str, extra: str) -> str:
+    """The installed version of ``distribution`` (e.g. ``scikit-learn``), read from its
+    metadata without importing it, or :class:`MissingExtraError` naming the extra."""
+    from importlib import metadata
+
+    try:
+        return metadata.version(distribution)
+    except metadata.PackageNotFoundError as exc:
+        raise MissingExtraError(distribution, extra) from exc

@@ -101,7 +101,8 @@ def _cell_codes(
 # Hand-written: a fixed-radius 2D search that only needs min, max and count per query
 # (no neighbour lists). scipy's cKDTree.query_ball_point returns Python lists per query
 # (measured ~20x slower here) and pgeof has no 2D radius search. Points are bucketed into
-# square cells one radius wide; each query visits the 3 x 3 cells around its own.
+# square cells one radius wide; each query visits the 3 x 3 cells around its own, found
+# by one binary search per column of 3 cells.
 @numba.njit(cache=True, nogil=True, parallel=True)
 def _cylinder_kernel(
     points: NDArray[np.float64],
@@ -124,15 +125,14 @@ def _cylinder_kernel(
         high = -np.inf
         count = 0
         for dx in range(-1, 2):
-            if cx + dx < 0:
+            if cx + dx < 0 or cy + 1 < 0:
                 continue
-            for dy in range(-1, 2):
-                if cy + dy < 0:
-                    continue
-                code = ((cx + dx) << _SHIFT) | (cy + dy)
-                j = np.searchsorted(cell_codes, code)
-                if j >= cell_codes.size or cell_codes[j] != code:
-                    continue
+            # cells (cx + dx, cy - 1 .. cy + 1) have consecutive codes: one search finds
+            # the first of them present, the entries after it are the others present
+            first = ((cx + dx) << _SHIFT) | max(cy - 1, 0)
+            last = ((cx + dx) << _SHIFT) | (cy + 1)
+            j = np.searchsorted(cell_codes, first)
+            while j < cell_codes.size and cell_codes[j] <= last:
                 for p in range(starts[j], starts[j + 1]):
                     ex = points[p, 0] - qx
                     ey = points[p, 1] - qy
@@ -141,6 +141,7 @@ def _cylinder_kernel(
                         low = min(low, z)
                         high = max(high, z)
                         count += 1
+                j += 1
         if count == 0:
             for c in range(4):
                 out[row, c] = 0.0

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any, TypeVar
 
-from semantic3d.core.errors import Semantic3DError, require
+from semantic3d.core.errors import Semantic3DError, installed_version, require
 
 __all__ = [
     "ModelFileError",
@@ -175,14 +175,16 @@ class ModelFileFormat:
         from semantic3d import __version__
 
         joblib: Any = require("joblib", extra)
-        sklearn: Any = require("sklearn", extra)
+        # from the metadata: importing scikit-learn takes ~0.9 s, and a payload without
+        # its objects (the covariance model's compiled trees) never needs it
+        sklearn_version = installed_version("scikit-learn", extra)
         with self.open(path) as (header, stream):
             check_versions(
                 header,
                 Path(path),
                 expected={
                     "package_version": ("semantic3d", __version__),
-                    "sklearn_version": ("scikit-learn", sklearn.__version__),
+                    "sklearn_version": ("scikit-learn", sklearn_version),
                 },
                 retrain=retrain,
             )

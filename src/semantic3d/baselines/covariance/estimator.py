@@ -14,7 +14,11 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from semantic3d.baselines.covariance.forest import CompiledForest, compile_forest
+from semantic3d.baselines.covariance.forest import (
+    CompiledClassifier,
+    CompiledForest,
+    compile_forest,
+)
 from semantic3d.core.errors import require
 
 _sklearn_base: Any = require("sklearn.base", "ml")
@@ -97,6 +101,17 @@ class CovarianceClassifier(_sklearn_base.ClassifierMixin, _sklearn_base.BaseEsti
         proba = self.predict_proba(X)
         result: NDArray[Any] = self.classes_[np.argmax(proba, axis=1)]
         return result
+
+    def compact(self) -> CompiledClassifier:
+        """What prediction needs of the fitted estimator, without scikit-learn objects
+        (what model files hold)."""
+        _validation.check_is_fitted(self)
+        return CompiledClassifier(
+            classes_=np.asarray(self.classes_),
+            compiled_=self.compiled_,
+            feature_importances_=np.asarray(self.forest_.feature_importances_, np.float64),
+            params=self.get_params(),
+        )
 
     def __sklearn_tags__(self) -> Any:
         tags = super().__sklearn_tags__()

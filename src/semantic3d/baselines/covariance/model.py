@@ -7,7 +7,7 @@ import math
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -15,11 +15,14 @@ from numpy.typing import NDArray
 from semantic3d.baselines.common.prediction import LabelledBlock
 from semantic3d.baselines.covariance.config import ContextConfig, CovarianceConfig
 from semantic3d.baselines.covariance.context import label_rows_by_group, row_centroids
-from semantic3d.baselines.covariance.estimator import CovarianceClassifier
+from semantic3d.baselines.covariance.forest import CompiledClassifier
 from semantic3d.core.errors import ShapeError
 from semantic3d.core.pointcloud import PointCloud
 from semantic3d.features.pyramid import grid_origin
 from semantic3d.spatial.grid import TileGrid
+
+if TYPE_CHECKING:  # the estimator imports scikit-learn; prediction does not need it
+    from semantic3d.baselines.covariance.estimator import CovarianceClassifier
 
 logger = logging.getLogger(__name__)
 
@@ -75,7 +78,9 @@ class CovarianceModel:
     """A trained covariance baseline.
 
     Attributes:
-        classifier: the fitted :class:`CovarianceClassifier`.
+        classifier: the fitted :class:`CovarianceClassifier` after training; its
+            :class:`~semantic3d.baselines.covariance.forest.CompiledClassifier` (no
+            scikit-learn object) once saved and loaded. Both predict the same.
         config: the resolved configuration it was trained with.
         feature_names: its input columns, in order.
         training_scans: names of the scans it was trained on.
@@ -87,7 +92,7 @@ class CovarianceModel:
             training ran one (``config.forest`` then holds the chosen ones).
     """
 
-    classifier: CovarianceClassifier
+    classifier: CovarianceClassifier | CompiledClassifier
     config: CovarianceConfig
     feature_names: tuple[str, ...]
     training_scans: tuple[str, ...]

@@ -10,14 +10,16 @@ files you trust.
 
 from __future__ import annotations
 
+import dataclasses
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
 from semantic3d.baselines.common.modelfile import ModelFileError, ModelFileFormat
 from semantic3d.baselines.covariance.config import config_to_dict
+from semantic3d.baselines.covariance.forest import CompiledClassifier
 from semantic3d.baselines.covariance.model import CovarianceModel
-from semantic3d.core.errors import require
+from semantic3d.core.errors import installed_version, require
 
 FORMAT = "semantic3d-covariance-model"
 FORMAT_VERSION = 1
@@ -43,10 +45,9 @@ def save_model(model: CovarianceModel, path: str | Path) -> Path:
     Ctrl-C leaves what was at ``path`` as it was.
     """
     joblib: Any = require("joblib", "ml")
-    sklearn: Any = require("sklearn", "ml")
     header = {
         "package_version": model.package_version,
-        "sklearn_version": sklearn.__version__,
+        "sklearn_version": installed_version("scikit-learn", "ml"),
         "created": datetime.now(UTC).isoformat(timespec="seconds"),
         "config": config_to_dict(model.config),
         "feature_names": list(model.feature_names),
@@ -57,7 +58,11 @@ def save_model(model: CovarianceModel, path: str | Path) -> Path:
         "training_time_s": model.training_time_s,
         "grid_search": None if model.grid_search is None else model.grid_search.to_dict(),
     }
-    return _FILE.write(path, header, lambda stream: joblib.dump(model, stream, compress=3))
+    # the compiled trees only: loading the file to predict then imports no scikit-learn
+    classifier = model.classifier
+    compact = classifier if isinstance(classifier, CompiledClassifier) else classifier.compact()
+    stored = dataclasses.replace(model, classifier=compact)
+    return _FILE.write(path, header, lambda stream: joblib.dump(stored, stream, compress=3))
 
 
 def read_model_header(path: str | Path) -> dict[str, Any]:
