@@ -2,6 +2,13 @@
 
 Run: ``.venv/bin/python benchmarks/bench_cubemap.py [--points 200000] [--size 512]``
 
+Options of the accuracy section: ``--preset small|paper`` (the image baseline's preset,
+default ``small``), ``--face-size N`` (classification face edge, overriding the preset's),
+``--variants boosted,unet`` (which variants to train, default both), ``--epochs N`` (U-Net
+epochs, overriding the preset's), ``--no-covariance`` (skip the covariance comparison),
+``--json PATH`` (also write the report there). For the U-Net the training loss is recorded
+per epoch (mean over the epoch's steps) and printed as it goes.
+
 1. Rendering points/s and peak traced memory of ``viz.cubemap.render_cubemap`` (numba
    z-buffer) against a straightforward numpy implementation (vectorised projection, a
    lexsort per chunk, merged into the faces), same points, same run; both from points
@@ -9,13 +16,15 @@ Run: ``.venv/bin/python benchmarks/bench_cubemap.py [--points 200000] [--size 51
 2. Per-face inference time of both variants, end-to-end points/s of ``predict_image_scan``.
 3. Accuracy on simulated scans: train on the three stations of ``street`` seed 1, test on
    the three stations of ``street`` seed 2 (another layout), both variants, and the
-   covariance baseline on the same split.
+   covariance baseline on the same split: mIoU, OA, per-class IoU, train and predict
+   wall / CPU seconds.
 Wall and CPU seconds are printed side by side (the machine may be shared).
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import tempfile
 import time
@@ -75,26 +84,44 @@ def timed(run: Callable[[], Any]) -> tuple[Any, float, float, float]:
     return result, wall, cpu, peak
 
 
-def miou(truth: np.ndarray, predicted: np.ndarray) -> tuple[float, float]:
-    """Mean IoU and overall accuracy over labelled points (the benchmark's convention)."""
+def miou(truth: np.ndarray, predicted: np.ndarray) -> tuple[float, float, dict[str, float]]:
+    """Mean IoU, overall accuracy and IoU per class name over labelled points (the
+    benchmark's convention: absent classes NaN, left out of the mean)."""
+    from semantic3d.core.classes import CLASSES
     from semantic3d.metrics.confusion import ConfusionMatrix
 
     matrix = ConfusionMatrix()
     matrix.update(truth, predicted)
     scores = matrix.compute_scores()
-    return float(scores.mean_iou), float(scores.overall_accuracy)
+    per_class = {c.name: float(v) for c, v in zip(CLASSES, scores.iou, strict=True)}
+    return float(scores.mean_iou), float(scores.overall_accuracy), per_class
+
+
+class TrainingLog:
+    """A training ``progress`` callback: prints each stage as it goes."""
+
+    def __init__(self) -> None:
+        self.started = time.perf_counter()
+
+    def __call__(self, stage: str, done: int, total: int) -> None:
+        print(f"  {stage} {done}/{total} ({time.perf_counter() - self.started:.0f} s)", flush=True)
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser()
-    parser.add_argument("--points", type=int, default=200_000)
-    parser.add_argument("--size", type=int, default=512)
-    parser.add_argument("--preset", default="small")
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--points", type=int, default=200_000, help="points per station")
+    parser.add_argument("--size", type=int, default=512, help="face edge of the render timing")
+    parser.add_argument("--preset", default="small", choices=("small", "paper"))
+    parser.add_argument("--face-size", type=int, help="classification face edge (preset's)")
+    parser.add_argument("--variants", default="boosted,unet", help="comma-separated: boosted, unet")
+    parser.add_argument("--epochs", type=int, help="U-Net epochs (default: the preset's)")
     parser.add_argument("--no-accuracy", action="store_true")
+    parser.add_argument("--no-covariance", action="store_true")
+    parser.add_argument("--json", type=Path, help="also write the report to this file")
     args = parser.parse_args()
 
     from semantic3d.baselines.common.scans import LabelledScan
-    from semantic3d.baselines.image.config import preset_config
+    from semantic3d.baselines.image.config import ImageConfig, preset_config
     from semantic3d.baselines.image.model import ImageVariant
     from semantic3d.baselines.image.predict import predict_image_scan
     from semantic3d.baselines.image.training import train_image_model
@@ -103,6 +130,7 @@ def main() -> None:
     from semantic3d.io.labels import read_labels
     from semantic3d.viz.cubemap import render_cubemap
 
+    variants = [ImageVariant(v.strip()) for v in args.variants.split(",") if v.strip()]
     report: dict[str, Any] = {"points_per_scan": args.points, "face_size": args.size}
     with tempfile.TemporaryDirectory() as scratch:
         folder = Path(scratch)
@@ -142,7 +170,7 @@ def main() -> None:
         report["numpy_equals_numba"] = bool(same)
         print("numpy index faces equal numba's:", same)
         if args.no_accuracy:
-            print(json.dumps(report, indent=2))
+            finish(report, args.json)
             return
 
         def labelled(result: Any) -> list[LabelledScan]:
@@ -151,11 +179,28 @@ def main() -> None:
             ]
 
         train, test = labelled(runs[1]), labelled(runs[2])
-        config = preset_config(args.preset)
-        for variant in (ImageVariant.BOOSTED, ImageVariant.UNET):
-            model, wall, cpu, _ = timed(
-                lambda v=variant: train_image_model(train, config=config, variant=v)
+        config: ImageConfig = preset_config(args.preset)
+        if args.face_size is not None:
+            config = dataclasses.replace(
+                config, faces=dataclasses.replace(config.faces, size=args.face_size)
             )
+        if args.epochs is not None:
+            config = dataclasses.replace(
+                config, unet=dataclasses.replace(config.unet, epochs=args.epochs)
+            )
+        report["image_config"] = {
+            "preset": config.preset,
+            "face_size": config.faces.size,
+            "unet_epochs": config.unet.epochs,
+        }
+        for variant in variants:
+            log = TrainingLog()
+            model, wall, cpu, _ = timed(
+                lambda v=variant, g=log: train_image_model(
+                    train, config=config, variant=v, progress=g
+                )
+            )
+            print(f"  trained in {wall:.0f} s (cpu {cpu:.0f} s)", flush=True)
             truths, preds = [], []
             pred_wall = pred_cpu = 0.0
             n_points = 0
@@ -179,21 +224,40 @@ def main() -> None:
 
             face = cube_faces(cubemap)[0]
             _, face_wall, face_cpu, _ = timed(lambda m=model, f=face: m.segmenter.segment(f))
-            m, oa = miou(np.concatenate(truths), np.concatenate(preds))
+            truth, predicted = np.concatenate(truths), np.concatenate(preds)
+            m, oa, per_class = miou(truth, predicted)
             report[f"image {variant}"] = {
                 "train_wall_s": wall,
                 "train_cpu_s": cpu,
                 "per_face_wall_s": face_wall,
                 "per_face_cpu_s": face_cpu,
                 "end_to_end_points_per_s": n_points / pred_wall,
+                "predict_wall_s": pred_wall,
                 "predict_cpu_s": pred_cpu,
                 "mean_iou": m,
                 "overall_accuracy": oa,
+                "iou_per_class": per_class,
+                "points_per_predicted_value": {
+                    int(v): int(c)
+                    for v, c in zip(*np.unique(predicted, return_counts=True), strict=True)
+                },
+                "points_per_true_value": {
+                    int(v): int(c)
+                    for v, c in zip(*np.unique(truth, return_counts=True), strict=True)
+                },
             }
+            losses = getattr(model.segmenter, "loss_history_", None)
+            if losses:  # the U-Net's mean training loss per epoch
+                report[f"image {variant}"]["epoch_losses"] = losses
             print(
                 f"image {variant}: mIoU {m:.3f} OA {oa:.3f}; train {wall:.0f} s (cpu {cpu:.0f}); "
-                f"face {face_wall:.2f} s (cpu {face_cpu:.2f}); end to end {n_points / pred_wall:,.0f} points/s"
+                f"face {face_wall:.2f} s (cpu {face_cpu:.2f}); end to end {n_points / pred_wall:,.0f} points/s; "
+                f"predict {pred_wall:.0f} s (cpu {pred_cpu:.0f})",
+                flush=True,
             )
+        if args.no_covariance:
+            finish(report, args.json)
+            return
         try:
             from semantic3d.baselines.covariance.config import (
                 CovarianceConfig,
@@ -218,13 +282,26 @@ def main() -> None:
                 predict_covariance(model, scan_.points_path, out_path=out)
                 truths.append(read_labels(scan_.labels_path))
                 preds.append(read_labels(out))
-            m, oa = miou(np.concatenate(truths), np.concatenate(preds))
-            report["covariance"] = {"mean_iou": m, "overall_accuracy": oa, "train_wall_s": wall}
+            m, oa, per_class = miou(np.concatenate(truths), np.concatenate(preds))
+            report["covariance"] = {
+                "mean_iou": m,
+                "overall_accuracy": oa,
+                "iou_per_class": per_class,
+                "train_wall_s": wall,
+            }
             print(f"covariance: mIoU {m:.3f} OA {oa:.3f}")
         except Exception as exc:  # the comparison is optional: report why it is missing
             report["covariance"] = f"not run: {exc}"
             print("covariance not run:", exc)
-    print(json.dumps(report, indent=2))
+    finish(report, args.json)
+
+
+def finish(report: dict[str, Any], path: Path | None) -> None:
+    """Print the report as JSON, and write it to ``path`` when given."""
+    text = json.dumps(report, indent=2)
+    print(text)
+    if path is not None:
+        path.write_text(text + "\n", encoding="utf-8")
 
 
 if __name__ == "__main__":

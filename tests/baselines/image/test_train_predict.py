@@ -108,6 +108,8 @@ def test_unet_variant_trains_and_round_trips(simulated_dir: Path, tmp_path: Path
     model = train_image_model(scans, config=config_from_dict(TINY), variant=ImageVariant.UNET)
     loaded = load_model(save_model(model, tmp_path / "u.s3d"))
     assert loaded.variant is ImageVariant.UNET
+    losses = loaded.segmenter.loss_history_  # type: ignore[union-attr]
+    assert len(losses) == 2 and all(np.isfinite(losses)) and min(losses) > 0
     cubemap, _ = render_scan(scans[0], config=model.config)
     np.testing.assert_array_equal(model.segment_cubemap(cubemap), loaded.segment_cubemap(cubemap))
     predict_image_scan(

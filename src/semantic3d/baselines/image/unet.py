@@ -82,7 +82,13 @@ def _inputs(face: Face) -> NDArray[np.float32]:
 
 
 class UNetSegmenter:
-    """U-Net on cube faces; ``fit`` returns self, fitted attributes end in ``_``."""
+    """U-Net on cube faces; ``fit`` returns self, fitted attributes end in ``_``.
+
+    Attributes:
+        classes_: label values it predicts.
+        loss_history_: mean training loss (weighted cross-entropy) of each epoch, to see
+            whether training has converged.
+    """
 
     def __init__(self, config: ImageConfig) -> None:
         self.config = config
@@ -134,8 +140,10 @@ class UNetSegmenter:
         multiple = 1 << settings.depth
         crop = min(settings.crop_px, size - size % multiple)
         network.train()
+        self.loss_history_: list[float] = []
         for epoch in range(settings.epochs):
             order = rng.permutation(len(usable))
+            losses: list[float] = []
             for begin in range(0, order.size, settings.batch_size):
                 batch = order[begin : begin + settings.batch_size]
                 rows = rng.integers(0, size - crop + 1, batch.size)
@@ -158,6 +166,8 @@ class UNetSegmenter:
                 loss = loss_fn(network(torch.from_numpy(x)), torch.from_numpy(y))
                 loss.backward()
                 optimiser.step()
+                losses.append(float(loss.detach()))
+            self.loss_history_.append(float(np.mean(losses)) if losses else float("nan"))
             if progress is not None:
                 progress("epochs", epoch + 1, settings.epochs)
         self.n_inputs_ = int(inputs.shape[1])
