@@ -4,6 +4,9 @@ predict → evaluate flow, and interruption."""
 from __future__ import annotations
 
 import json
+import os
+import subprocess
+import sys
 import zipfile
 from pathlib import Path
 
@@ -333,3 +336,19 @@ def test_predict_a_folder_with_parallel_scans_option(
     )
     assert code == 2
     assert "--parallel-scans" in output
+
+
+def test_parallel_scans_fall_back_to_one_where_numba_is_not_thread_safe(
+    model_file: Path, data: Path, tmp_path: Path
+) -> None:
+    # numba's workqueue layer must not be entered from two threads at once
+    env = {**os.environ, "NUMBA_THREADING_LAYER": "workqueue"}
+    command = [
+        sys.executable, "-m", "semantic3d", "baseline", "covariance", "predict",
+        "--model", str(model_file), "--data", str(data), "--out", str(tmp_path / "out"),
+        "--parallel-scans", "2",
+    ]  # fmt: skip
+    done = subprocess.run(command, capture_output=True, text=True, env=env, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert "labelling one scan at a time (numba's threading layer" in " ".join(done.stdout.split())
+    assert sorted(p.name for p in (tmp_path / "out").glob("*.labels")) == ["a.labels", "b.labels"]
