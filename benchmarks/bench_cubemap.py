@@ -6,8 +6,8 @@ Options of the accuracy section: ``--preset small|paper`` (the image baseline's 
 default ``small``), ``--face-size N`` (classification face edge, overriding the preset's),
 ``--variants boosted,unet`` (which variants to train, default both), ``--epochs N`` (U-Net
 epochs, overriding the preset's), ``--no-covariance`` (skip the covariance comparison),
-``--json PATH`` (also write the report there). For the U-Net the training loss is recorded
-per epoch (mean over the epoch's steps) and printed as it goes.
+``--json PATH`` (also write the report there). The U-Net's mean training loss of each
+epoch (its ``loss_history_``) goes into the report; training stages are printed as they go.
 
 1. Rendering points/s and peak traced memory of ``viz.cubemap.render_cubemap`` (numba
    z-buffer) against a straightforward numpy implementation (vectorised projection, a
@@ -95,6 +95,12 @@ def miou(truth: np.ndarray, predicted: np.ndarray) -> tuple[float, float, dict[s
     scores = matrix.compute_scores()
     per_class = {c.name: float(v) for c, v in zip(CLASSES, scores.iou, strict=True)}
     return float(scores.mean_iou), float(scores.overall_accuracy), per_class
+
+
+def value_counts(labels: np.ndarray) -> dict[int, int]:
+    """Points per label value."""
+    values, counts = np.unique(labels, return_counts=True)
+    return {int(v): int(c) for v, c in zip(values, counts, strict=True)}
 
 
 class TrainingLog:
@@ -237,14 +243,8 @@ def main() -> None:
                 "mean_iou": m,
                 "overall_accuracy": oa,
                 "iou_per_class": per_class,
-                "points_per_predicted_value": {
-                    int(v): int(c)
-                    for v, c in zip(*np.unique(predicted, return_counts=True), strict=True)
-                },
-                "points_per_true_value": {
-                    int(v): int(c)
-                    for v, c in zip(*np.unique(truth, return_counts=True), strict=True)
-                },
+                "points_per_predicted_value": value_counts(predicted),
+                "points_per_true_value": value_counts(truth),
             }
             losses = getattr(model.segmenter, "loss_history_", None)
             if losses:  # the U-Net's mean training loss per epoch
