@@ -102,6 +102,15 @@ def test_alpha_expansion_rejects_bad_input() -> None:
         alpha_expansion(np.ones(4), np.empty((0, 2), np.int64), weight=1.0)
     with pytest.raises(ConfigError, match="weight: expected >= 0"):
         alpha_expansion(np.ones((4, 2)), np.empty((0, 2), np.int64), weight=-1.0)
+    # the compiled loop trusts its indices: out-of-range ones are refused before it runs
+    with pytest.raises(ShapeError, match=r"edges: expected pairs of two different nodes in 0\.\.3"):
+        alpha_expansion(np.ones((4, 2)), np.array([[0, 4]]), weight=1.0)
+    with pytest.raises(ShapeError, match="edges: expected pairs of two different nodes"):
+        alpha_expansion(np.ones((4, 2)), np.array([[2, 2]]), weight=1.0)
+    with pytest.raises(ShapeError, match=r"labels: expected columns in 0\.\.1"):
+        alpha_expansion(np.ones((4, 2)), np.array([[0, 1]]), weight=1.0, labels=np.full(4, 2))
+    with pytest.raises(ShapeError, match="labels: expected \\(4,\\)"):
+        alpha_expansion(np.ones((4, 2)), np.array([[0, 1]]), weight=1.0, labels=np.zeros(3))
 
 
 def _numpy_undirected_edges(neighbours: np.ndarray) -> np.ndarray:

@@ -9,7 +9,7 @@ every row its class probabilities:
 - :func:`alpha_expansion` labels a graph (k nearest neighbours, :func:`knn_edges`) by
   minimising a Potts energy, ``sum_i -log p_i(l_i) + weight * sum_(i,j) [l_i != l_j]``,
   with alpha-expansion moves (Boykov, Veksler & Zabih 2001), each move an exact binary
-  cut by PyMaxflow.
+  cut (Boykov-Kolmogorov max-flow, compiled: :mod:`._graph_cut`).
 """
 
 from __future__ import annotations
@@ -154,56 +154,41 @@ def alpha_expansion(
         max_sweeps: passes over all labels; stops early when a pass changes nothing.
 
     Each move is solved exactly, so the energy never rises; the result is within a factor
-    2 of the optimum for the Potts model.
+    2 of the optimum for the Potts model. The loop runs compiled and without the GIL
+    (:func:`~semantic3d.baselines.covariance._graph_cut.expand_labels`), so scans labelled on
+    several threads cut their graphs at the same time.
     """
-    maxflow: Any = require("maxflow", "ml")
     unary = np.asarray(unary, dtype=np.float64)
     if unary.ndim != 2:
         raise ShapeError(f"unary: expected (n, n_classes), found {unary.shape}")
     if weight < 0:
         raise ConfigError(f"weight: expected >= 0, found {weight}")
-    n, n_labels = unary.shape
+    n = unary.shape[0]
     edges = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
     current = (
         np.argmin(unary, axis=1).astype(np.int64)
         if labels is None
         else np.asarray(labels, dtype=np.int64).copy()
     )
+    if current.shape != (n,):
+        raise ShapeError(f"labels: expected ({n},), found {current.shape}")
     if n == 0 or weight == 0 or edges.shape[0] == 0:
         return current
-    from semantic3d.baselines.covariance._context_kernels import expansion_capacities
+    if edges.min() < 0 or edges.max() >= n or np.any(edges[:, 0] == edges[:, 1]):
+        raise ShapeError(f"edges: expected pairs of two different nodes in 0..{n - 1}")
+    if current.min() < 0 or current.max() >= unary.shape[1]:
+        raise ShapeError(f"labels: expected columns in 0..{unary.shape[1] - 1}")
+    from semantic3d.baselines.covariance._graph_cut import expand_labels
 
-    costs: NDArray[np.float64] = np.ascontiguousarray(unary, dtype=np.float64)
-    first = np.ascontiguousarray(edges[:, 0])
-    second = np.ascontiguousarray(edges[:, 1])
-    to_source = np.empty(n, np.float64)
-    to_sink = np.empty(n, np.float64)
-    pair = np.empty(edges.shape[0], np.float64)
-    no_reverse = np.zeros(edges.shape[0], np.float64)
-    energy = _energy(costs, first, second, current, weight)
-    for _ in range(max_sweeps):
-        changed = False
-        for alpha in range(n_labels):
-            # x = 0 keeps the current label, x = 1 takes alpha. With a = [l_i != l_j]
-            # (keep, keep), b = [l_i != alpha] (keep, alpha), c = [alpha != l_j]
-            # (alpha, keep), D = 0 and weights w: E = A + (C - A) x_i + (D - C) x_j
-            # + (B + C - A - D)(1 - x_i) x_j, which the kernel turns into capacities.
-            expansion_capacities(
-                costs, first, second, current, alpha, float(weight), to_source, to_sink, pair
-            )
-            graph = maxflow.Graph[float](n, edges.shape[0])
-            nodes = graph.add_nodes(n)
-            graph.add_grid_tedges(nodes, to_source, to_sink)
-            graph.add_edges(first, second, pair, no_reverse)
-            graph.maxflow()
-            take = graph.get_grid_segments(nodes)
-            proposal = np.where(take, alpha, current)
-            proposed = _energy(costs, first, second, proposal, weight)
-            if proposed < energy - 1e-9:
-                current, energy, changed = proposal, proposed, True
-        if not changed:
-            break
-    return current
+    expanded: NDArray[np.int64] = expand_labels(
+        np.ascontiguousarray(unary),
+        np.ascontiguousarray(edges[:, 0]),
+        np.ascontiguousarray(edges[:, 1]),
+        current,
+        float(weight),
+        int(max_sweeps),
+    )
+    return expanded
 
 
 def row_centroids(
