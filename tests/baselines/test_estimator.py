@@ -39,6 +39,27 @@ def test_features_exactly_on_a_threshold_go_the_same_way() -> None:
     np.testing.assert_array_equal(compiled.predict_proba(probes), forest.predict_proba(probes))
 
 
+def test_trees_of_every_depth_in_one_forest() -> None:
+    # the walk runs each tree for its depth: a lone leaf, stumps and deep trees side by side,
+    # with row counts that leave partial groups of walkers and partial blocks
+    from sklearn.tree import DecisionTreeClassifier
+
+    rng = np.random.default_rng(2)
+    x = rng.normal(size=(600, 5)).astype(np.float32)
+    y = (x[:, 0] > 0).astype(int) + (x[:, 1] > 0.5)
+    trees = [
+        DecisionTreeClassifier(max_depth=depth, min_samples_split=split, random_state=0).fit(x, y)
+        for depth, split in [(None, 10**6), (1, 2), (3, 2), (None, 2)]
+    ]
+    assert [tree.get_depth() for tree in trees][:2] == [0, 1]
+    compiled = compile_forest(trees, n_features=5)
+    assert compiled.predict_proba(np.empty((0, 5), np.float32)).shape == (0, 3)
+    for n_rows in (1, 15, 17, 256, 1000):
+        test = rng.normal(size=(n_rows, 5)).astype(np.float32)
+        expected = np.mean([tree.predict_proba(test) for tree in trees], axis=0)
+        np.testing.assert_allclose(compiled.predict_proba(test), expected, atol=1e-12)
+
+
 def test_float32_floor_keeps_every_comparison() -> None:
     rng = np.random.default_rng(1)
     thresholds = rng.normal(size=1000)
