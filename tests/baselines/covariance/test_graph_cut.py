@@ -86,22 +86,22 @@ def test_max_flow_equals_pymaxflow_and_its_cut(graph: tuple[np.ndarray, ...]) ->
 def _pymaxflow_expansion(
     unary: np.ndarray, edges: np.ndarray, weight: float, max_sweeps: int
 ) -> np.ndarray:
-    """Alpha-expansion with each move cut by PyMaxflow (the context step as first built)."""
+    """Alpha-expansion with each move cut by PyMaxflow (as the context step was first built)."""
     n, n_labels = unary.shape
     first, second = np.ascontiguousarray(edges[:, 0]), np.ascontiguousarray(edges[:, 1])
     current = unary.argmin(axis=1).astype(np.int64)
     energy = potts_energy(unary, edges, current, weight=weight)
-    to_source, to_sink, pair = np.empty(n), np.empty(n), np.empty(first.size)
+    terminal, forward, backward = np.empty(n), np.empty(first.size), np.empty(first.size)
     for _ in range(max_sweeps):
         changed = False
         for alpha in range(n_labels):
             expansion_capacities(
-                unary, first, second, current, alpha, weight, to_source, to_sink, pair
+                unary, first, second, current, alpha, weight, terminal, forward, backward
             )
             graph = maxflow.Graph[float](n, first.size)
             nodes = graph.add_nodes(n)
-            graph.add_grid_tedges(nodes, to_source, to_sink)
-            graph.add_edges(first, second, pair, np.zeros(first.size))
+            graph.add_grid_tedges(nodes, np.maximum(terminal, 0), np.maximum(-terminal, 0))
+            graph.add_edges(first, second, forward, backward)
             graph.maxflow()
             proposal = np.where(graph.get_grid_segments(nodes), alpha, current)
             proposed = potts_energy(unary, edges, proposal, weight=weight)

@@ -1,11 +1,10 @@
 """Compiled bookkeeping of the context step: the k-NN graph's edges and each expansion move's
 graph capacities.
 
-Hand-written because the numpy expressions they replace made ~15 passes over the edge
+Hand-written because the numpy expressions they replaced made ~15 passes over the edge
 arrays per move (fancy indexing, three ``bincount``\\ s, temporaries) and an
 ``(n * (k + 1), k + 1)`` comparison table for the edges; together they cost more than the
-max-flow itself. Each kernel is one or two passes and adds in the same order as the numpy
-code did, so the capacities (and hence the cuts and labels) are the same floats.
+max-flow itself. Each kernel is one or two passes.
 """
 
 from __future__ import annotations
@@ -48,41 +47,50 @@ def expansion_capacities(
     current: np.ndarray,
     alpha: int,
     weight: float,
-    to_source: np.ndarray,
-    to_sink: np.ndarray,
-    pair: np.ndarray,
+    terminal: np.ndarray,
+    forward: np.ndarray,
+    backward: np.ndarray,
 ) -> None:  # pragma: no cover - compiled
-    """Capacities of the binary graph of one alpha-expansion move (x = 1 takes ``alpha``).
+    """The binary graph of one alpha-expansion move (x = 1: the node takes ``alpha``).
 
-    Node ``i`` keeps its label at cost ``cost0 = unary[i, current[i]] + sum of the edges
-    (i, j) whose labels differ`` and takes ``alpha`` at ``cost1 = unary[i, alpha] +
-    sum_(i, j) [alpha != current[j]] - sum_(j, i) [alpha != current[j]]`` (times
-    ``weight``); the terminal capacities are ``cost1 - low`` and ``cost0 - low`` with
-    ``low = min(cost0, cost1)``, and each edge gets ``b + c - a`` (Kolmogorov & Zabih's
-    decomposition of the pairwise term, see ``alpha_expansion``).
+    Writes ``terminal[i]``, the cost of ``x_i = 1`` minus that of ``x_i = 0`` (positive:
+    the capacity from the source, negative: minus the capacity to the sink), and the
+    capacities of edge ``e`` from ``first[e]`` to ``second[e]`` (``forward``, paid when
+    ``first`` keeps and ``second`` takes alpha) and back (``backward``).
+
+    Each edge's Potts term is split symmetrically (Kolmogorov & Zabih 2004 allow any split
+    with the same energy): two ends with one label other than alpha get ``weight`` both
+    ways and nothing on the terminals; an end already labelled alpha makes the other end's
+    switch ``weight`` cheaper; two different labels, neither alpha, get ``weight / 2``
+    both ways and each end's switch ``weight / 2`` cheaper. The first split tried (all of
+    the term on the edge's first node, ``2 * weight`` one way) gave the same cuts but drove
+    ~50 000 augmenting paths through a 96 000-voxel scan per move, and took twice as long.
     """
-    n = unary.shape[0]
-    keep_sum = np.zeros(n, np.float64)
-    out_sum = np.zeros(n, np.float64)
-    in_sum = np.zeros(n, np.float64)
+    for i in range(unary.shape[0]):
+        terminal[i] = unary[i, alpha] - unary[i, current[i]]
+    half = 0.5 * weight
     for e in range(first.size):
         i = first[e]
         j = second[e]
         li = current[i]
         lj = current[j]
-        a = weight if li != lj else 0.0
-        b = weight if li != alpha else 0.0
-        c = weight if alpha != lj else 0.0
-        keep_sum[i] += a
-        out_sum[i] += c
-        in_sum[j] += c
-        pair[e] = b + c - a
-    for i in range(n):
-        cost0 = unary[i, current[i]] + keep_sum[i]
-        cost1 = unary[i, alpha] + (out_sum[i] - in_sum[i])
-        low = min(cost0, cost1)
-        to_source[i] = cost1 - low
-        to_sink[i] = cost0 - low
+        if li == lj:
+            capacity = weight if li != alpha else 0.0
+            forward[e] = capacity
+            backward[e] = capacity
+        elif li == alpha:
+            terminal[j] -= weight
+            forward[e] = 0.0
+            backward[e] = 0.0
+        elif lj == alpha:
+            terminal[i] -= weight
+            forward[e] = 0.0
+            backward[e] = 0.0
+        else:
+            terminal[i] -= half
+            terminal[j] -= half
+            forward[e] = half
+            backward[e] = half
 
 
 @nb.njit(cache=True, nogil=True)

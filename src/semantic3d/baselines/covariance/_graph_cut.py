@@ -29,6 +29,12 @@ _ORPHAN = -3  # the parent arc was saturated; the node waits for adoption
 _INFINITE_DISTANCE = 1 << 30
 
 
+@nb.njit(cache=True, nogil=True, inline="always")
+def _wrap(position: int, n: int) -> int:  # pragma: no cover - compiled
+    """``position % n`` for ``0 <= position < 2 n`` (the rings' indices), without a division."""
+    return position - n if position >= n else position
+
+
 @nb.njit(cache=True, nogil=True)
 def arc_layout(
     n: int, first: np.ndarray, second: np.ndarray
@@ -109,7 +115,7 @@ def max_flow(
             in_sink_tree[i] = terminal[i] < 0
             parent[i] = _TERMINAL
             queued[i] = True
-            queue[(queue_head + queue_size) % n] = i
+            queue[_wrap(queue_head + queue_size, n)] = i
             queue_size += 1
         else:
             parent[i] = _FREE
@@ -127,7 +133,7 @@ def max_flow(
         if i < 0:
             while queue_size > 0:
                 candidate = queue[queue_head]
-                queue_head = (queue_head + 1) % n
+                queue_head = _wrap(queue_head + 1, n)
                 queue_size -= 1
                 queued[candidate] = False
                 if parent[candidate] != _FREE:
@@ -149,7 +155,7 @@ def max_flow(
                         distance[j] = distance[i] + 1
                         if not queued[j]:
                             queued[j] = True
-                            queue[(queue_head + queue_size) % n] = j
+                            queue[_wrap(queue_head + queue_size, n)] = j
                             queue_size += 1
                     elif in_sink_tree[j]:
                         middle = a
@@ -169,7 +175,7 @@ def max_flow(
                         distance[j] = distance[i] + 1
                         if not queued[j]:
                             queued[j] = True
-                            queue[(queue_head + queue_size) % n] = j
+                            queue[_wrap(queue_head + queue_size, n)] = j
                             queue_size += 1
                     elif not in_sink_tree[j]:
                         middle = sister[a]
@@ -246,7 +252,7 @@ def max_flow(
             cascade_size = 1
             while cascade_size > 0:
                 o = cascade[cascade_head]
-                cascade_head = (cascade_head + 1) % n
+                cascade_head = _wrap(cascade_head + 1, n)
                 cascade_size -= 1
                 sink = in_sink_tree[o]
                 best = -1
@@ -298,11 +304,11 @@ def max_flow(
                     a = parent[j]
                     if residual[a0 if sink else sister[a0]] != 0.0 and not queued[j]:
                         queued[j] = True
-                        queue[(queue_head + queue_size) % n] = j
+                        queue[_wrap(queue_head + queue_size, n)] = j
                         queue_size += 1
                     if a != _TERMINAL and a != _ORPHAN and head[a] == o:
                         parent[j] = _ORPHAN
-                        cascade[(cascade_head + cascade_size) % n] = j
+                        cascade[_wrap(cascade_head + cascade_size, n)] = j
                         cascade_size += 1
 
     for i in range(n):
@@ -330,20 +336,17 @@ def expand_labels(
     residual = np.empty(2 * m, np.float64)
     terminal = np.empty(n, np.float64)
     take = np.empty(n, np.bool_)
-    to_source = np.empty(n, np.float64)
-    to_sink = np.empty(n, np.float64)
-    pair = np.empty(m, np.float64)
+    forward_cap = np.empty(m, np.float64)
+    backward_cap = np.empty(m, np.float64)
     for _ in range(max_sweeps):
         changed = False
         for alpha in range(n_labels):
             expansion_capacities(
-                unary, first, second, current, alpha, weight, to_source, to_sink, pair
+                unary, first, second, current, alpha, weight, terminal, forward_cap, backward_cap
             )
             for e in range(m):
-                residual[forward[e]] = pair[e]
-                residual[backward[e]] = 0.0
-            for i in range(n):
-                terminal[i] = to_source[i] - to_sink[i]
+                residual[forward[e]] = forward_cap[e]
+                residual[backward[e]] = backward_cap[e]
             max_flow(row_start, head, sister, residual, terminal, take)
             # the energy change of the move, exactly as a difference of its two terms
             data = 0.0
