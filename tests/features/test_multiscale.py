@@ -183,3 +183,69 @@ def test_distinct_voxels_equals_numpy_unique(size: int) -> None:
     np.testing.assert_array_equal(needed, expected)
     np.testing.assert_array_equal(inverse, expected_inverse)
     assert needed.dtype == inverse.dtype == np.int64
+
+
+def test_level0_neighbours_are_each_rows_nearest_voxels_itself_first(scene: PointCloud) -> None:
+    from semantic3d.features.multiscale import build_cloud_pyramid
+
+    table = compute_multiscale_features(scene, config=SMALL)
+    centres = build_cloud_pyramid(scene, config=SMALL).levels[0].xyz  # one row per voxel
+    neighbours = table.neighbours
+    assert neighbours is not None and neighbours.shape == (table.n_rows, SMALL.k_neighbours)
+    np.testing.assert_array_equal(neighbours[:, 0], np.arange(table.n_rows))
+    rng = np.random.default_rng(0)
+    for row in rng.choice(table.n_rows, 200, replace=False):
+        distance = np.linalg.norm(centres - centres[row], axis=1)
+        listed = distance[neighbours[row]]
+        assert np.all(np.diff(listed) >= 0)  # nearest first
+        others = np.delete(distance, neighbours[row])
+        assert listed[-1] <= others.min()  # no voxel left out is nearer
+    # a subset of the points: voxels without a row are absent (-1), the others renumbered
+    pick = np.flatnonzero(scene.xyz[:, 0] < np.median(scene.xyz[:, 0]))
+    part = compute_multiscale_features(scene, config=SMALL, point_indices=pick)
+    assert part.neighbours is not None
+    assert np.any(part.neighbours == -1) and part.neighbours.max() < part.n_rows
+    first_point = np.full(table.n_rows, scene.n_points)
+    np.minimum.at(first_point, table.point_row, np.arange(scene.n_points))
+    part_first = np.full(part.n_rows, scene.n_points)
+    np.minimum.at(part_first, part.point_row, pick)
+    whole_row = table.point_row[part_first]  # each part row's row in the whole table
+    expected = table.neighbours[whole_row]
+    kept = np.isin(expected, whole_row)
+    got = part.neighbours
+    np.testing.assert_array_equal(got == -1, ~kept)
+    np.testing.assert_array_equal(whole_row[got[kept]], expected[kept])
+
+
+@pytest.mark.parametrize("whole_level_points", [0, 10**9], ids=["level0-halos", "level0-whole"])
+def test_tiled_neighbours_are_the_whole_scans_within_each_tile(
+    scene: PointCloud, whole_level_points: int, tmp_path
+) -> None:
+    # each row named by the first point it holds: voxels never straddle tiles
+    table = compute_multiscale_features(scene, config=SMALL)
+    assert table.neighbours is not None
+    first = np.full(table.n_rows, scene.n_points)
+    np.minimum.at(first, table.point_row, np.arange(scene.n_points))
+    tile_of_point = np.empty(scene.n_points, np.int64)
+    got: dict[int, np.ndarray] = {}
+    with TiledScan(
+        _chunks(scene, 7000),
+        config=SMALL,
+        tile_size_m=3.2,
+        workdir=tmp_path,
+        whole_level_points=whole_level_points,
+    ) as scan:
+        for number, tile in enumerate(scan.iter_features()):
+            tile_of_point[tile.point_indices] = number
+            rows = tile.table
+            assert rows.neighbours is not None
+            row_first = np.full(rows.n_rows, scene.n_points)
+            np.minimum.at(row_first, rows.point_row, tile.point_indices)
+            named = np.where(rows.neighbours >= 0, row_first[rows.neighbours], -1)
+            for row, point in enumerate(row_first):
+                got[int(point)] = named[row]
+    assert len(got) == table.n_rows
+    for row, point in enumerate(first):
+        expected = first[table.neighbours[row]]
+        expected = np.where(tile_of_point[expected] == tile_of_point[point], expected, -1)
+        np.testing.assert_array_equal(got[int(point)], expected)

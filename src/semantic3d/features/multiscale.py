@@ -43,11 +43,17 @@ class FeatureTable:
         names: column names (``planarity@0.100m``), level-major.
         values: ``(n_rows, n_features)`` float32.
         point_row: ``(n_points,)`` int64 row of each requested point, in request order.
+        neighbours: in voxel mode, ``(n_rows, k)`` int64: the rows of the ``k`` nearest
+            level-0 voxels of every row's voxel, nearest first (the level-0 features' own
+            canonical k-NN, so the voxel itself comes first), ``-1`` where that voxel has no
+            row here (its points were not requested, or lie in another tile); None in
+            per-point mode. A graph over the rows for free (the context step's).
     """
 
     names: tuple[str, ...]
     values: NDArray[np.float32]
     point_row: NDArray[np.int64]
+    neighbours: NDArray[np.int64] | None = None
 
     @property
     def n_rows(self) -> int:
@@ -97,6 +103,7 @@ def compute_level_features(
     config: FeatureConfig,
     level: int,
     out: NDArray[np.float32] | None = None,
+    neighbours: NDArray[np.int64] | None = None,
 ) -> tuple[NDArray[np.float32], NDArray[np.float64]]:
     """Features of ``queries`` against one level; also how far each row looked.
 
@@ -108,6 +115,8 @@ def compute_level_features(
         level: the level's number (0 finest), which sets the cylinder radius.
         out: optional ``(m, n_level_features)`` float32 destination (may be a column
             slice of a wider table).
+        neighbours: optional ``(m, min(k, n_points))`` int64 destination for every query's
+            neighbours (indices into ``index``'s points, canonical order).
 
     Returns:
         ``(m, n_level_features)`` float32 block (``out`` when given) and ``(m,)`` reach:
@@ -121,6 +130,12 @@ def compute_level_features(
     if out.shape != (queries.shape[0], width):
         raise ShapeError(f"out: expected ({queries.shape[0]}, {width}), found {out.shape}")
     found = index.query(queries, k=config.k_neighbours)
+    if neighbours is not None:
+        if neighbours.shape != found.indices.shape:
+            raise ShapeError(
+                f"neighbours: expected {found.indices.shape}, found {neighbours.shape}"
+            )
+        neighbours[...] = found.indices
     column = N_COVARIANCE_COLUMNS + (N_HEIGHT_COLUMNS if config.spherical_height else 0)
     # The kernels always get C-contiguous arrays of one dtype: every other layout would be
     # another compilation (~10 s) on first use. A column slice goes through a block.
@@ -192,6 +207,8 @@ def compute_multiscale_features(
 
     voxels, point_row = distinct_voxels(pyramid.point_voxel[wanted])
     values = np.empty((voxels.size, config.n_features), np.float32)
+    base = pyramid.levels[0]
+    neighbours = np.empty((voxels.size, min(config.k_neighbours, base.n_voxels)), np.int64)
     ancestor = voxels
     for level_number, level in enumerate(pyramid.levels):
         if level_number:
@@ -209,13 +226,34 @@ def compute_multiscale_features(
             # whose float32 copy the index already holds
             queries = level.xyz if needed.size == level.n_voxels else level.xyz[needed]
             compute_level_features(
-                index, level.attributes, queries, config=config, level=number, out=out
+                index,
+                level.attributes,
+                queries,
+                config=config,
+                level=number,
+                out=out,
+                # level 0 holds one row per voxel, in row order: keep its k-NN
+                neighbours=neighbours if number == 0 else None,
             )
 
         fill_level_columns(
             values[:, level_number * width : (level_number + 1) * width], ancestor, compute
         )
-    return FeatureTable(config.feature_names, values, point_row)
+    if voxels.size != base.n_voxels:  # some voxels have no row: renumber as rows
+        row_of_voxel = np.full(base.n_voxels, -1, np.int64)
+        row_of_voxel[voxels] = np.arange(voxels.size)
+        neighbours = row_of_voxel[neighbours]
+    return FeatureTable(config.feature_names, values, point_row, neighbours)
+
+
+def rows_of_keys(keys: NDArray[np.int64], row_keys: NDArray[np.int64]) -> NDArray[np.int64]:
+    """The row of every key in ``keys`` (any shape): its position in the sorted unique
+    ``row_keys``, or -1 where it is not there."""
+    if row_keys.size == 0:
+        return np.full(keys.shape, -1, np.int64)
+    position = np.minimum(np.searchsorted(row_keys, keys), row_keys.size - 1)
+    rows: NDArray[np.int64] = np.where(row_keys[position] == keys, position, -1)
+    return rows
 
 
 def fill_level_columns(

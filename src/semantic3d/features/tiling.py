@@ -47,6 +47,7 @@ from semantic3d.features.multiscale import (
     compute_level_features,
     distinct_voxels,
     fill_level_columns,
+    rows_of_keys,
 )
 from semantic3d.features.neighbourhoods import LevelIndex
 from semantic3d.features.pyramid import VoxelPyramid, build_pyramid, grid_origin
@@ -116,6 +117,16 @@ class _TilePyramid:
 
 
 @dataclass(frozen=True, slots=True)
+class _WholeLevel:
+    """A level described whole (:meth:`TiledScan._whole_level`): its sorted keys, their
+    feature rows and, for level 0, the keys of every voxel's k nearest (else None)."""
+
+    keys: NDArray[np.int64]
+    rows: NDArray[np.float32]
+    neighbour_keys: NDArray[np.int64] | None
+
+
+@dataclass(frozen=True, slots=True)
 class TileFeatures:
     """Feature rows of the selected points of one tile.
 
@@ -176,7 +187,7 @@ class TiledScan:
         self.origin: NDArray[np.float64] = np.zeros(3)
         self._level_sizes = [0] * config.n_levels
         self._first_halo: dict[int, float] = {}
-        self._whole: dict[int, tuple[NDArray[np.int64], NDArray[np.float32]] | None] = {}
+        self._whole: dict[int, _WholeLevel | None] = {}
         self.whole_level_points = whole_level_points
         self.cache_bytes = cache_bytes
         self._cache: OrderedDict[Tile, _TilePyramid] = OrderedDict()
@@ -373,6 +384,8 @@ class TiledScan:
             )
         voxels, point_row = distinct_voxels(pyramid.point_voxel[local])
         values = np.empty((voxels.size, config.n_features), np.float32)
+        # level 0 (one row per voxel, in row order) also gives every row its k-NN
+        neighbour_keys = np.full((voxels.size, config.k_neighbours), -1, np.int64)
         ancestor = voxels
         for number in range(config.n_levels):
             if number:
@@ -383,21 +396,33 @@ class TiledScan:
             ) -> None:
                 whole = self._whole_level(number)
                 if whole is None:
-                    out[:] = self._exact_level(tile, number, pyramid.levels[number].xyz[needed])
+                    out[:] = self._exact_level(
+                        tile,
+                        number,
+                        pyramid.levels[number].xyz[needed],
+                        neighbour_keys if number == 0 else None,
+                    )
                 else:
-                    keys, rows = whole
-                    out[:] = rows[np.searchsorted(keys, pyramid.levels[number].keys[needed])]
+                    at = np.searchsorted(whole.keys, pyramid.levels[number].keys[needed])
+                    out[:] = whole.rows[at]
+                    if number == 0 and whole.neighbour_keys is not None:
+                        found = whole.neighbour_keys[at]
+                        neighbour_keys[:, : found.shape[1]] = found
 
             fill_level_columns(values[:, number * width : (number + 1) * width], ancestor, compute)
-        return FeatureTable(config.feature_names, values, point_row)
+        neighbours = rows_of_keys(neighbour_keys, pyramid.levels[0].keys[voxels])
+        # a scan of fewer than k level-0 voxels has fewer neighbours: as the whole-scan path
+        width_found = min(config.k_neighbours, self._level_sizes[0])
+        return FeatureTable(config.feature_names, values, point_row, neighbours[:, :width_found])
 
-    def _whole_level(self, number: int) -> tuple[NDArray[np.int64], NDArray[np.float32]] | None:
+    def _whole_level(self, number: int) -> _WholeLevel | None:
         """Features of every voxel of a small level, computed once over the whole level.
 
         Coarse levels hold few voxels; describing them in one pass needs no halo and saves
         a k-NN call per tile. Levels are taken from the coarsest down while their voxels
         add up to at most ``whole_level_points``, so the rows kept stay bounded. Returns
-        ``(sorted keys, rows)``, or None for the levels that go tile by tile.
+        the level's sorted keys and rows (and, for level 0, its neighbours' keys), or None
+        for the levels that go tile by tile.
         """
         if number in self._whole:
             return self._whole[number]
@@ -407,10 +432,22 @@ class TiledScan:
             xyz, keys, attributes = self._gather(number, box)
             order = np.argsort(keys)
             xyz, keys, attributes = xyz[order], keys[order], attributes[order]
-            rows, _ = compute_level_features(
-                LevelIndex(xyz, keys), attributes, xyz, config=self.config, level=number
+            neighbour_keys = (
+                np.empty((keys.size, min(self.config.k_neighbours, keys.size)), np.int64)
+                if number == 0
+                else None
             )
-            result = (keys, rows)
+            rows, _ = compute_level_features(
+                LevelIndex(xyz, keys),
+                attributes,
+                xyz,
+                config=self.config,
+                level=number,
+                neighbours=neighbour_keys,
+            )
+            if neighbour_keys is not None:
+                neighbour_keys = keys[neighbour_keys]
+            result = _WholeLevel(keys, rows, neighbour_keys)
         self._whole[number] = result
         return result
 
@@ -445,14 +482,19 @@ class TiledScan:
         return halo
 
     def _exact_level(
-        self, tile: Tile, number: int, queries: NDArray[np.float64]
+        self,
+        tile: Tile,
+        number: int,
+        queries: NDArray[np.float64],
+        neighbour_keys: NDArray[np.int64] | None = None,
     ) -> NDArray[np.float32]:
         """Level ``number`` features of ``queries`` (in ``tile``), widening the halo until exact.
 
         First the tile plus the level's first halo (:meth:`_first_halo_m`); a query whose k-th
         neighbour lies beyond the halo's edge is asked again in a box containing the ball
         of that radius (the k-th distance within a subset bounds the true one), which is
-        then exact; a subset with fewer than k points doubles the box.
+        then exact; a subset with fewer than k points doubles the box. With
+        ``neighbour_keys`` (``(m, k)``), also the keys of every query's exact neighbours.
         """
         config = self.config
         size = self.tile_size_m
@@ -480,9 +522,20 @@ class TiledScan:
             )
             xyz, keys, attributes = self._gather(number, box)
             asked = queries[pending]
-            block, kth = compute_level_features(
-                LevelIndex(xyz, keys), attributes, asked, config=config, level=number
+            found = (
+                np.empty((pending.size, min(config.k_neighbours, keys.size)), np.int64)
+                if neighbour_keys is not None
+                else None
             )
+            block, kth = compute_level_features(
+                LevelIndex(xyz, keys),
+                attributes,
+                asked,
+                config=config,
+                level=number,
+                neighbours=found,
+            )
+            found_keys = None if found is None else keys[found]
             enough = xyz.shape[0] >= config.k_neighbours
             if infinite.all():
                 exact = np.ones(pending.size, bool)
@@ -490,6 +543,12 @@ class TiledScan:
                 edge = _distance_to_edge(asked, box, infinite)
                 exact = enough & (kth * (1.0 + 1e-6) + _SAFETY_M < edge)
             out[pending[exact]] = block[exact]
+            if neighbour_keys is not None and found_keys is not None:
+                if found_keys.shape[1] == neighbour_keys.shape[1]:
+                    neighbour_keys[pending[exact]] = found_keys[exact]
+                else:  # fewer level points than k in the whole scan: the rest stay absent
+                    neighbour_keys[pending[exact]] = -1
+                    neighbour_keys[pending[exact], : found_keys.shape[1]] = found_keys[exact]
             pending = pending[~exact]
             if pending.size:
                 if enough:

@@ -163,3 +163,39 @@ def test_move_graph_cuts_cost_the_energy_of_the_labels_they_give(seed: int) -> N
             labels = np.where(x, alpha, current)
             offsets.append(potts_energy(unary, edges, labels, weight=weight) - cut)
         np.testing.assert_allclose(offsets, offsets[0], atol=1e-9)
+
+
+def test_neighbour_lists_give_the_graph_and_each_group_is_labelled_alone() -> None:
+    from semantic3d.baselines.covariance.context import graph_edges, label_rows, label_rows_by_group
+
+    rng = np.random.default_rng(3)
+    n, k = 600, 8
+    xyz = rng.random((n, 3)) * [30.0, 10.0, 2.0]
+    proba = rng.dirichlet(np.ones(4) * 0.7, size=n)
+    # each row's k + 2 nearest (itself first), as the features give them
+    distance = np.linalg.norm(xyz[:, None] - xyz[None], axis=2)
+    lists = np.argsort(distance, axis=1, kind="stable")[:, : k + 2]
+    edges = graph_edges(n, None, n_neighbours=k, neighbours=lists)
+    assert np.all(edges[:, 0] < edges[:, 1])
+    assert {tuple(e) for e in edges} == {
+        (min(i, int(j)), max(i, int(j))) for i in range(n) for j in lists[i, 1 : k + 1]
+    }
+    group = (xyz[:, 0] // 10).astype(np.int64)  # three tiles
+    together = label_rows_by_group(proba, None, group, potts_weight=2.0, neighbours=lists)
+    for tile in range(3):
+        rows = np.flatnonzero(group == tile)
+        local = np.full(n, -1)
+        local[rows] = np.arange(rows.size)
+        alone = label_rows(proba[rows], None, potts_weight=2.0, neighbours=local[lists[rows]])
+        np.testing.assert_array_equal(together[rows], alone)
+    assert np.any(together != proba.argmax(axis=1))
+    # lists too short for the graph: positions are needed, and used
+    short = lists[:, :4]
+    with pytest.raises(ShapeError, match="need row positions or neighbour lists of 9 columns"):
+        label_rows(proba, None, potts_weight=2.0, neighbours=short)
+    np.testing.assert_array_equal(
+        label_rows(proba, xyz, potts_weight=2.0, neighbours=short),
+        label_rows(proba, xyz, potts_weight=2.0),
+    )
+    with pytest.raises(ShapeError, match=r"neighbours: expected rows in -1\.\.599"):
+        label_rows(proba, None, potts_weight=2.0, neighbours=lists + n)

@@ -16,15 +16,16 @@ import numpy as np
 @nb.njit(cache=True, nogil=True)
 def undirected_edges(neighbours: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
     """``(n_edges, 2)`` int64 pairs ``(min, max)`` from ``(n, k)`` neighbour lists that may
-    hold the point itself: ``(i, j)`` is kept from ``i``'s list when ``i < j`` or when
-    ``i`` is not in ``j``'s list (each undirected edge once), in row-major list order."""
+    hold the point itself and ``-1`` for absent entries: ``(i, j)`` is kept from ``i``'s
+    list when ``i < j`` or when ``i`` is not in ``j``'s list (each undirected edge once), in
+    row-major list order."""
     n, k = neighbours.shape
     out = np.empty((n * k, 2), np.int64)
     count = 0
     for i in range(n):
         for slot in range(k):
             j = np.int64(neighbours[i, slot])
-            if j == i:
+            if j == i or j < 0:
                 continue
             keep = True
             if j < i:

@@ -25,9 +25,11 @@ from semantic3d.core.errors import ConfigError, ShapeError, require
 
 __all__ = [
     "alpha_expansion",
+    "graph_edges",
     "knn_edges",
     "label_rows",
     "label_rows_by_group",
+    "lists_suffice",
     "potts_energy",
     "row_centroids",
     "smooth_probabilities",
@@ -207,58 +209,125 @@ def row_centroids(
 
 def label_rows(
     proba: NDArray[np.floating],
-    row_xyz: NDArray[np.floating],
+    row_xyz: NDArray[np.floating] | None,
     *,
     potts_weight: float,
     n_neighbours: int = 8,
     max_sweeps: int = 1,
+    neighbours: NDArray[np.int64] | None = None,
 ) -> NDArray[np.int64]:
     """Column of ``proba`` chosen for every row: the most probable class, then (with
-    ``potts_weight > 0``) alpha-expansion over the graph of each row's ``n_neighbours``
-    nearest rows by position."""
+    ``potts_weight > 0``) alpha-expansion over the graph joining every row to its
+    ``n_neighbours`` nearest rows: the first ``n_neighbours + 1`` columns of
+    ``neighbours`` (each row's nearest rows, itself first, ``-1`` where absent; see
+    :attr:`~semantic3d.features.multiscale.FeatureTable.neighbours`) when it has them,
+    else a k-NN search over ``row_xyz``."""
     proba = np.asarray(proba)
-    if row_xyz.shape != (proba.shape[0], 3):
-        raise ShapeError(f"row_xyz: expected ({proba.shape[0]}, 3), found {row_xyz.shape}")
     if potts_weight <= 0 or proba.shape[0] < 2:
         return np.argmax(proba, axis=1).astype(np.int64)
-    edges = knn_edges(row_xyz, k=n_neighbours)
+    edges = graph_edges(proba.shape[0], row_xyz, n_neighbours=n_neighbours, neighbours=neighbours)
     return alpha_expansion(unary_costs(proba), edges, weight=potts_weight, max_sweeps=max_sweeps)
+
+
+def graph_edges(
+    n_rows: int,
+    row_xyz: NDArray[np.floating] | None,
+    *,
+    n_neighbours: int,
+    neighbours: NDArray[np.int64] | None = None,
+) -> NDArray[np.int64]:
+    """The context graph's undirected edges ``(n_edges, 2)`` over ``n_rows`` rows (see
+    :func:`label_rows`)."""
+    from semantic3d.baselines.covariance._context_kernels import undirected_edges
+
+    if lists_suffice(neighbours, n_neighbours):
+        assert neighbours is not None
+        if neighbours.shape[0] != n_rows:
+            raise ShapeError(f"neighbours: expected {n_rows} rows, found {neighbours.shape[0]}")
+        lists = np.ascontiguousarray(neighbours[:, : n_neighbours + 1], dtype=np.int64)
+        if lists.size and (lists.max() >= n_rows or lists.min() < -1):
+            raise ShapeError(f"neighbours: expected rows in -1..{n_rows - 1}")
+        edges: NDArray[np.int64] = undirected_edges(lists)
+        return edges
+    if row_xyz is None:
+        raise ShapeError(
+            f"context graph: {n_neighbours} neighbours per row need row positions or "
+            f"neighbour lists of {n_neighbours + 1} columns"
+        )
+    if row_xyz.shape != (n_rows, 3):
+        raise ShapeError(f"row_xyz: expected ({n_rows}, 3), found {row_xyz.shape}")
+    return knn_edges(row_xyz, k=n_neighbours)
+
+
+def lists_suffice(neighbours: NDArray[np.int64] | None, n_neighbours: int) -> bool:
+    """Whether neighbour lists (each row itself first) can name ``n_neighbours`` others per
+    row. A scan of very few voxels has shorter lists; the context graph then comes from the
+    rows' positions, whole or tiled alike."""
+    return neighbours is not None and neighbours.ndim == 2 and neighbours.shape[1] > n_neighbours
 
 
 def label_rows_by_group(
     proba: NDArray[np.floating],
-    row_xyz: NDArray[np.floating],
+    row_xyz: NDArray[np.floating] | None,
     row_group: NDArray[np.int64],
     *,
     potts_weight: float,
     n_neighbours: int = 8,
     max_sweeps: int = 1,
+    neighbours: NDArray[np.int64] | None = None,
 ) -> NDArray[np.int64]:
     """:func:`label_rows` run separately on every group of rows (``row_group``, e.g. the
     tile of each row): no edge joins two groups, so a scan labelled whole gives the same
     labels as the same scan labelled tile by tile."""
     proba = np.asarray(proba)
-    if row_group.shape != (proba.shape[0],):
-        raise ShapeError(f"row_group: expected ({proba.shape[0]},), found {row_group.shape}")
+    n = proba.shape[0]
+    if row_group.shape != (n,):
+        raise ShapeError(f"row_group: expected ({n},), found {row_group.shape}")
+    if potts_weight <= 0 or n < 2:
+        return np.argmax(proba, axis=1).astype(np.int64)
     groups, inverse = np.unique(row_group, return_inverse=True)
+    edges = (
+        graph_edges(n, None, n_neighbours=n_neighbours, neighbours=neighbours)
+        if lists_suffice(neighbours, n_neighbours)
+        else None
+    )
     if groups.size <= 1:
-        return label_rows(
-            proba,
-            row_xyz,
-            potts_weight=potts_weight,
-            n_neighbours=n_neighbours,
-            max_sweeps=max_sweeps,
+        if edges is None:
+            return label_rows(
+                proba,
+                row_xyz,
+                potts_weight=potts_weight,
+                n_neighbours=n_neighbours,
+                max_sweeps=max_sweeps,
+            )
+        return alpha_expansion(
+            unary_costs(proba), edges, weight=potts_weight, max_sweeps=max_sweeps
         )
-    result = np.empty(proba.shape[0], np.int64)
+    result = np.empty(n, np.int64)
     order = np.argsort(inverse, kind="stable")
     bounds = np.searchsorted(inverse[order], np.arange(groups.size + 1))
-    for start, stop in itertools.pairwise(bounds):
+    if edges is not None:
+        # each group's own edges, in their order, renumbered within the group
+        edges = edges[inverse[edges[:, 0]] == inverse[edges[:, 1]]]
+        by_group = np.argsort(inverse[edges[:, 0]], kind="stable")
+        edges = edges[by_group]
+        edge_bounds = np.searchsorted(inverse[edges[:, 0]], np.arange(groups.size + 1))
+        local = np.empty(n, np.int64)
+        local[order] = np.arange(n) - np.repeat(bounds[:-1], np.diff(bounds))
+        unary = unary_costs(proba)
+    for number, (start, stop) in enumerate(itertools.pairwise(bounds)):
         rows = order[start:stop]  # ascending: the group's rows in their own order
-        result[rows] = label_rows(
-            proba[rows],
-            row_xyz[rows],
-            potts_weight=potts_weight,
-            n_neighbours=n_neighbours,
-            max_sweeps=max_sweeps,
-        )
+        if edges is None:
+            result[rows] = label_rows(
+                proba[rows],
+                None if row_xyz is None else row_xyz[rows],
+                potts_weight=potts_weight,
+                n_neighbours=n_neighbours,
+                max_sweeps=max_sweeps,
+            )
+        else:
+            group_edges = local[edges[edge_bounds[number] : edge_bounds[number + 1]]]
+            result[rows] = alpha_expansion(
+                unary[rows], group_edges, weight=potts_weight, max_sweeps=max_sweeps
+            )
     return result

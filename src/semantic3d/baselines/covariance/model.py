@@ -14,7 +14,11 @@ from numpy.typing import NDArray
 
 from semantic3d.baselines.common.prediction import LabelledBlock
 from semantic3d.baselines.covariance.config import ContextConfig, CovarianceConfig
-from semantic3d.baselines.covariance.context import label_rows_by_group, row_centroids
+from semantic3d.baselines.covariance.context import (
+    label_rows_by_group,
+    lists_suffice,
+    row_centroids,
+)
 from semantic3d.baselines.covariance.forest import CompiledClassifier
 from semantic3d.core.errors import ShapeError
 from semantic3d.core.pointcloud import PointCloud
@@ -132,14 +136,21 @@ class CovarianceModel:
             if positions is None:
                 row_labels = self.predict_rows(block.table.values)
             else:
-                xyz, tiles = positions.read(block.point_indices)
                 table = block.table
+                if lists_suffice(table.neighbours, self.context.n_neighbours):
+                    # the graph comes with the features: only the rows' tiles are needed
+                    row_xyz = None
+                    tiles = positions.read_tiles(block.point_indices)
+                else:
+                    xyz, tiles = positions.read(block.point_indices)
+                    row_xyz = row_centroids(xyz, table.point_row, table.n_rows)
                 row_tile = np.zeros(table.n_rows, np.int64)
                 row_tile[table.point_row] = tiles
                 row_labels = self.predict_rows(
                     table.values,
-                    row_xyz=row_centroids(xyz, table.point_row, table.n_rows),
+                    row_xyz=row_xyz,
                     row_tile=row_tile,
+                    neighbours=table.neighbours,
                 )
             yield LabelledBlock(
                 block.point_indices,
@@ -165,14 +176,18 @@ class CovarianceModel:
         *,
         row_xyz: NDArray[np.floating] | None = None,
         row_tile: NDArray[np.int64] | None = None,
+        neighbours: NDArray[np.int64] | None = None,
     ) -> NDArray[np.uint8]:
         """Label values of feature rows ``(n, n_features)`` in ``feature_names`` order.
 
-        Without ``row_xyz`` every row gets its most probable class. With ``row_xyz``
-        (``(n, 3)`` position of each row, e.g. the centroid of its points) and the
-        configuration's context step on (``[context] potts_weight > 0``), the rows are
-        labelled together by alpha-expansion over their nearest-neighbour graph, tile by
-        tile when ``row_tile`` (``(n,)`` tile of each row, :func:`point_tiles`) is given.
+        Without a graph every row gets its most probable class. With the configuration's
+        context step on (``[context] potts_weight > 0``) and the rows' nearest neighbours,
+        the rows are labelled together by alpha-expansion over their nearest-neighbour
+        graph, tile by tile when ``row_tile`` (``(n,)`` tile of each row,
+        :func:`point_tiles`) is given. The neighbours are ``neighbours``, the feature
+        table's lists (:attr:`~semantic3d.features.multiscale.FeatureTable.neighbours`),
+        or else found from ``row_xyz`` (``(n, 3)`` position of each row, e.g. the centroid
+        of its points).
         """
         if values.ndim != 2 or values.shape[1] != len(self.feature_names):
             raise ShapeError(
@@ -183,18 +198,20 @@ class CovarianceModel:
         proba = self.classifier.compiled_.predict_proba(values)
         classes = np.asarray(self.classifier.classes_, dtype=np.uint8)
         context = self.context
-        if context.enabled and row_xyz is None:
-            logger.warning("context step skipped: no row positions were given")
-        if row_xyz is None or not context.enabled:
+        graph = row_xyz is not None or lists_suffice(neighbours, context.n_neighbours)
+        if context.enabled and not graph:
+            logger.warning("context step skipped: no row positions or neighbours were given")
+        if not graph or not context.enabled:
             columns = np.argmax(proba, axis=1)
         else:
             columns = label_rows_by_group(
                 proba,
-                np.asarray(row_xyz, dtype=np.float64),
+                None if row_xyz is None else np.asarray(row_xyz, dtype=np.float64),
                 np.zeros(proba.shape[0], np.int64) if row_tile is None else row_tile,
                 potts_weight=context.potts_weight,
                 n_neighbours=context.n_neighbours,
                 max_sweeps=context.max_sweeps,
+                neighbours=neighbours,
             )
         labels: NDArray[np.uint8] = classes[columns]
         return labels
@@ -259,6 +276,14 @@ class _PositionFile:
     ) -> tuple[NDArray[np.float32], NDArray[np.int64]]:
         """``(m, 3)`` positions and ``(m,)`` tiles of the given points (of a scan streamed
         through :meth:`record`)."""
+        xyz, tiles = self._open()
+        return np.asarray(xyz[point_indices]), np.asarray(tiles[point_indices])
+
+    def read_tiles(self, point_indices: NDArray[np.int64]) -> NDArray[np.int64]:
+        """``(m,)`` tiles of the given points (of a scan streamed through :meth:`record`)."""
+        return np.asarray(self._open()[1][point_indices])
+
+    def _open(self) -> tuple[NDArray[np.float32], NDArray[np.int64]]:
         if not self._complete:
             raise RuntimeError(f"{self.folder}: read before the scan finished streaming")
         if self._xyz is None or self._tiles is None:
@@ -266,4 +291,4 @@ class _PositionFile:
                 -1, 3
             )
             self._tiles = np.memmap(self.folder / "tiles.i64", dtype=np.int64, mode="r")
-        return np.asarray(self._xyz[point_indices]), np.asarray(self._tiles[point_indices])
+        return self._xyz, self._tiles

@@ -25,7 +25,7 @@ from semantic3d.baselines.common.run import (
     PredictionRunSet,
     describe_hardware,
 )
-from semantic3d.baselines.covariance.context import row_centroids
+from semantic3d.baselines.covariance.context import lists_suffice, row_centroids
 from semantic3d.baselines.covariance.model import CovarianceModel, point_tiles
 from semantic3d.core.pointcloud import PointCloud
 from semantic3d.features.multiscale import compute_multiscale_features
@@ -55,9 +55,14 @@ def predict_cloud(model: CovarianceModel, cloud: PointCloud) -> NDArray[np.uint8
     )
     row_tile = np.zeros(table.n_rows, np.int64)
     row_tile[table.point_row] = point_tiles(cloud.xyz, origin=origin, config=model.config)
-    relative = (cloud.xyz - origin).astype(np.float32)
-    row_xyz = row_centroids(relative, table.point_row, table.n_rows)
-    return model.predict_rows(table.values, row_xyz=row_xyz, row_tile=row_tile)[table.point_row]
+    row_xyz = None
+    if not lists_suffice(table.neighbours, model.context.n_neighbours):
+        relative = (cloud.xyz - origin).astype(np.float32)
+        row_xyz = row_centroids(relative, table.point_row, table.n_rows)
+    labels = model.predict_rows(
+        table.values, row_xyz=row_xyz, row_tile=row_tile, neighbours=table.neighbours
+    )
+    return labels[table.point_row]
 
 
 def concurrent_scans_supported() -> bool:
