@@ -238,7 +238,7 @@ def bench_predict(data: Path, repeat: int, model_path: Path) -> None:
                     model, config=dataclasses.replace(model.config, prediction=prediction)
                 )
                 contenders[f"{scan.name} {label}"] = lambda v=variant, s=scan: predict_scan(
-                    v, s, out_path=Path(tmp) / "p.labels"
+                    v, s, out_path=Path(tmp) / "p.labels", overwrite=True
                 )
             n_points = read_ascii_points(scan).n_points
             for label, seconds in interleaved(repeat, contenders).items():

@@ -25,8 +25,10 @@ Levers (``--levers``, comma separated; default all):
   them: ``default-smooth-3`` / ``-2-4`` / ``-4-6`` (probabilities mixed with their voxel
   means at those levels), ``default-crf`` (alpha-expansion of a Potts energy on the 8
   nearest level-0 voxels, 3 sweeps; ``-1sweep``: 1, as the library; ``-wide``: weights
-  2 to 32; ``-4``: weight 4 fixed; ``-k4`` / ``-k6``: a graph of the 4 / 6 nearest
-  voxels, weights 2 to 16), ``default-smooth-crf`` (levels 4-6 smoothing, then
+  2 to 32; ``-4``: weight 4 fixed; ``-4-positions``: weight 4 on a k-NN graph searched
+  over the rows' point centroids, the library's until 2026-11-25 (the others take the
+  features' own level-0 k-NN, cut at the prediction tiles, as ``predict`` does);
+  ``-k4`` / ``-k6``: a graph of the 4 / 6 nearest voxels, weights 2 to 16), ``default-smooth-crf`` (levels 4-6 smoothing, then
   the graph cut), ``lgbm`` / ``lgbm-crf`` (LightGBM), ``hgb-es``
   (HistGradientBoosting), ``scan-norm`` (every column standardised per scan),
   ``default-dtm`` (+ height above a terrain model), ``no-scale-columns`` (without the
@@ -60,16 +62,18 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from semantic3d.baselines.covariance.config import CovarianceConfig
 from semantic3d.baselines.covariance.context import (
-    alpha_expansion,
-    knn_edges,
+    label_rows_by_group,
+    row_centroids,
     smooth_probabilities,
-    unary_costs,
 )
 from semantic3d.baselines.covariance.estimator import CovarianceClassifier
+from semantic3d.baselines.covariance.model import point_tiles
 from semantic3d.core import CLASSES, PointCloud
 from semantic3d.features import FeatureConfig, build_cloud_pyramid, compute_multiscale_features
 from semantic3d.features.names import CYLINDER_FEATURES
+from semantic3d.features.neighbourhoods import LevelIndex
 from semantic3d.io.ascii import read_ascii_points
 from semantic3d.metrics import ConfusionMatrix
 
@@ -110,6 +114,8 @@ class Lever:
     scan_norm: bool = False  # standardise every column per scan (mean 0, std 1)
     exclude: tuple[str, ...] = ()  # feature names (any level) dropped by prefix match
     neighbours: int = 8  # k of the context step's nearest-neighbour graph
+    graph: str = "features"  # features: the level-0 k-NN of the features; positions: a
+    # k-NN search over the rows' point centroids (the library's graph until 2026-11-25)
 
     @property
     def training_key(self) -> tuple[Any, ...]:
@@ -123,6 +129,7 @@ class Lever:
                 smooth_weight=0.75,
                 weights=(),
                 neighbours=8,
+                graph="features",
             )
         )
 
@@ -152,6 +159,9 @@ LEVERS: dict[str, Lever] = {
     "default-crf-1sweep": Lever(DEFAULT, post="crf", sweeps=1),
     "default-crf-wide": Lever(DEFAULT, post="crf", sweeps=1, weights=(2.0, 4.0, 8.0, 16.0, 32.0)),
     "default-crf-4": Lever(DEFAULT, post="crf", sweeps=1, weights=(4.0,)),
+    "default-crf-4-positions": Lever(
+        DEFAULT, post="crf", sweeps=1, weights=(4.0,), graph="positions"
+    ),
     "default-crf-k4": Lever(
         DEFAULT, post="crf", sweeps=1, weights=(2.0, 4.0, 8.0, 16.0), neighbours=4
     ),
@@ -253,12 +263,27 @@ def ancestors_of(scan: Scan, features: FeatureConfig, level: int) -> NDArray[np.
     return result
 
 
-def edges_of(scan: Scan, features: FeatureConfig, k: int = 8) -> NDArray[np.int64]:
-    key = (scan.name, -k)
+def graph_of(
+    scan: Scan, features: FeatureConfig
+) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64]]:
+    """What ``predict`` builds the context graph of a scan labelled whole from: every
+    level-0 voxel's canonical k-NN (the features' own, :attr:`FeatureTable.neighbours`),
+    the prediction tile of every row (pairs across tiles are dropped) and, for the
+    ``positions`` graph, the rows' point centroids (float32 positions, as predict keeps)."""
+    key = (scan.name, -1)
     if key not in _CONTEXT:
-        xyz = build_cloud_pyramid(scan.cloud, config=features).levels[0].xyz
-        _CONTEXT[key] = knn_edges(xyz, k=k)
-    result: NDArray[np.int64] = _CONTEXT[key]
+        pyramid = build_cloud_pyramid(scan.cloud, config=features)
+        level = pyramid.levels[0]
+        lists = LevelIndex(level.xyz, level.keys).query(level.xyz, k=features.k_neighbours)
+        tiles = np.zeros(level.n_voxels, np.int64)
+        config = dataclasses.replace(CovarianceConfig(), features=features)
+        tiles[pyramid.point_voxel] = point_tiles(
+            scan.cloud.xyz, origin=pyramid.origin, config=config
+        )
+        relative = (scan.cloud.xyz - pyramid.origin).astype(np.float32)
+        centroids = row_centroids(relative, pyramid.point_voxel, level.n_voxels)
+        _CONTEXT[key] = (lists.indices.astype(np.int64), tiles, centroids)
+    result: tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64]] = _CONTEXT[key]
     return result
 
 
@@ -394,11 +419,15 @@ def apply_post(
         levels = [ancestors_of(scan, lever.features, level) for level in lever.smooth_levels]
         proba = smooth_probabilities(proba, levels, weight=lever.smooth_weight)
     if lever.post in ("crf", "smooth-crf") and weight > 0:
-        return alpha_expansion(
-            unary_costs(proba),
-            edges_of(scan, lever.features, lever.neighbours),
-            weight=weight,
+        lists, tiles, centroids = graph_of(scan, lever.features)
+        return label_rows_by_group(
+            proba,
+            centroids,
+            tiles,
+            potts_weight=weight,
+            n_neighbours=lever.neighbours,
             max_sweeps=lever.sweeps,
+            neighbours=lists if lever.graph == "features" else None,
         )
     return np.argmax(proba, axis=1)
 
