@@ -352,3 +352,55 @@ def test_parallel_scans_fall_back_to_one_where_numba_is_not_thread_safe(
     assert done.returncode == 0, done.stderr
     assert "labelling one scan at a time (numba's threading layer" in " ".join(done.stdout.split())
     assert sorted(p.name for p in (tmp_path / "out").glob("*.labels")) == ["a.labels", "b.labels"]
+
+
+class _CountingPredictor:
+    """Wraps a model and records how many scans it was labelling at once."""
+
+    def __init__(self, model: CovarianceModel, max_parallel_scans: int | None) -> None:
+        import threading
+
+        self.model = model
+        self.active = 0
+        self.most = 0
+        self._lock = threading.Lock()
+        if max_parallel_scans is not None:
+            self.max_parallel_scans = max_parallel_scans
+
+    @property
+    def training_scans(self) -> tuple[str, ...]:
+        return self.model.training_scans
+
+    @property
+    def chunk_size(self) -> int:
+        return self.model.chunk_size
+
+    def iter_labelled_blocks(self, chunks, *, workdir):  # type: ignore[no-untyped-def]
+        import time
+
+        with self._lock:
+            self.active += 1
+            self.most = max(self.most, self.active)
+        try:
+            time.sleep(0.3)  # long enough for another scan's thread to start meanwhile
+            yield from self.model.iter_labelled_blocks(chunks, workdir=workdir)
+        finally:
+            with self._lock:
+                self.active -= 1
+
+
+@pytest.mark.parametrize(("declared", "most"), [(None, 2), (1, 1), (4, 2)])
+def test_a_predictors_max_parallel_scans_caps_the_scans_labelled_at_once(
+    model: CovarianceModel, data: Path, tmp_path: Path, declared: int | None, most: int
+) -> None:
+    from semantic3d.baselines.common.prediction import parallel_scans_limit
+
+    predictor = _CountingPredictor(model, declared)
+    assert parallel_scans_limit(predictor) == declared
+    scans = find_scans_to_label(data)
+    predict_scans(predictor, scans, tmp_path / "out", parallel_scans=2)
+    assert predictor.most == most
+    alone = predict_scans(model, scans, tmp_path / "alone")
+    assert [run.n_points for run in alone.runs] == [
+        count_labels(tmp_path / "out" / scan.output_name) for scan in scans
+    ]

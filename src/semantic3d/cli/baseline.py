@@ -249,28 +249,27 @@ def _predict(
     cluster_options: tuple[str | None, int | None] = (None, None),
     parallel_scans: int | None = None,
 ) -> None:
+    from semantic3d.baselines.common.prediction import parallel_scans_limit
     from semantic3d.baselines.common.submission import (
         is_zip_output,
         planned_outputs,
         refuse_existing_outputs,
     )
     from semantic3d.baselines.covariance.persistence import load_model
-    from semantic3d.baselines.covariance.predict import concurrent_scans_supported, predict_scans
+    from semantic3d.baselines.covariance.predict import predict_scans
 
     refuse_existing_outputs(planned_outputs(target, scans), overwrite=overwrite)
     model = load_model(model_path)
     on_cluster = cluster_options != (None, None)
     if parallel_scans is None:  # 2 where it is safe and helps
-        many = len(scans) > 1 and not on_cluster
-        parallel_scans = 2 if many and concurrent_scans_supported() else 1
-    elif parallel_scans > 1 and (on_cluster or not concurrent_scans_supported()):
+        parallel_scans = 2 if len(scans) > 1 and not on_cluster else 1
+    elif parallel_scans > 1 and (on_cluster or parallel_scans_limit(model) == 1):
         why = (
             "the cluster labels each scan's tiles in parallel"
             if on_cluster
             else "numba's threading layer here is not thread-safe: install tbb"
         )
         ui.console.print(f"--parallel-scans: labelling one scan at a time ({why})")
-        parallel_scans = 1
     with open_cluster(*cluster_options) as cluster, progress_bar() as bar:
         task = bar.add_task(f"labelling {plural(len(scans), 'scan')}", total=None)
 

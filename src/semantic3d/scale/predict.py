@@ -85,6 +85,11 @@ class ClusterPredictor:
     def chunk_size(self) -> int:
         return self.model.chunk_size
 
+    @property
+    def max_parallel_scans(self) -> int:
+        """One scan at a time: the cluster labels each scan's tiles in parallel."""
+        return 1
+
     def iter_labelled_blocks(
         self, chunks: Iterable[PointCloud], *, workdir: Path
     ) -> Iterator[LabelledBlock]:

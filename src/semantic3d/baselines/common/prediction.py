@@ -48,6 +48,7 @@ __all__ = [
     "Predictor",
     "Progress",
     "RunProgress",
+    "parallel_scans_limit",
     "predict_scan",
     "predict_scans",
 ]
@@ -168,6 +169,14 @@ def predict_scan(
     return run
 
 
+def parallel_scans_limit(predictor: Predictor) -> int | None:
+    """How many scans ``predictor`` may label at once on threads of one process: its
+    ``max_parallel_scans`` (at least 1), or None when it declares none (the caller's
+    ``parallel_scans`` is then trusted)."""
+    limit = getattr(predictor, "max_parallel_scans", None)
+    return None if limit is None else max(1, int(limit))
+
+
 def predict_scans(
     predictor: Predictor,
     scans: Sequence[ScanToLabel],
@@ -190,9 +199,12 @@ def predict_scans(
     ``parallel_scans`` > 1 labels that many scans at a time, each on its own thread, for a
     predictor whose work releases the GIL and is safe to run from several threads (the
     covariance baseline's compiled kernels): the serial parts of one scan then overlap the
-    parallel parts of another. Every scan's labels are the same as when labelled alone;
-    memory is that of ``parallel_scans`` scans. After an error or Ctrl-C the scans being
-    labelled stop at their next block of labels and no new scan starts.
+    parallel parts of another. A predictor with a ``max_parallel_scans`` attribute caps it
+    (:func:`parallel_scans_limit`: 1 where its kernels must not run on several threads at
+    once, or on a cluster that already labels a scan's tiles in parallel). Every scan's
+    labels are the same as when labelled alone; memory is that of the scans labelled at
+    once. After an error or Ctrl-C the scans being labelled stop at their next block of
+    labels and no new scan starts.
 
     Raises:
         OutputExistsError: an output exists and ``overwrite`` is False (checked before
@@ -203,6 +215,9 @@ def predict_scans(
 
     if parallel_scans < 1:
         raise ValueError(f"parallel_scans: expected at least 1, found {parallel_scans}")
+    limit = parallel_scans_limit(predictor)
+    if limit is not None:
+        parallel_scans = min(parallel_scans, limit)
     started = time.perf_counter()
     out = Path(out)
     refuse_existing_outputs(planned_outputs(out, scans), overwrite=overwrite)

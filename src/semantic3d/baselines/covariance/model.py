@@ -9,6 +9,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import numba
 import numpy as np
 from numpy.typing import NDArray
 
@@ -160,6 +161,13 @@ class CovarianceModel:
             )
 
     @property
+    def max_parallel_scans(self) -> int:
+        """Scans it may label at once on threads of one process
+        (:func:`~semantic3d.baselines.common.prediction.parallel_scans_limit`): any number
+        where numba's threading layer is thread-safe, else 1."""
+        return 64 if concurrent_scans_supported() else 1
+
+    @property
     def context(self) -> ContextConfig:
         """The context step's settings (off for a model saved before it existed)."""
         context: ContextConfig = getattr(self.config, "context", _NO_CONTEXT)
@@ -292,3 +300,19 @@ class _PositionFile:
             )
             self._tiles = np.memmap(self.folder / "tiles.i64", dtype=np.int64, mode="r")
         return self._xyz, self._tiles
+
+
+def concurrent_scans_supported() -> bool:
+    """Whether scans can be labelled on several threads at once
+    (``predict_scans(..., parallel_scans=2)``): the model's compiled kernels are then
+    launched from several threads, which numba's ``tbb`` and ``omp`` threading layers
+    allow and its ``workqueue`` fallback (no TBB, no OpenMP runtime) does not."""
+    _touch_threading_layer(np.zeros(1))
+    return str(numba.threading_layer()) != "workqueue"
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _touch_threading_layer(values: NDArray[np.float64]) -> None:  # pragma: no cover - compiled
+    """A parallel kernel's first launch picks numba's threading layer."""
+    for index in numba.prange(values.size):
+        values[index] = 0.0

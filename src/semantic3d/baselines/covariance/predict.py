@@ -9,7 +9,6 @@ itself labels the streamed scan (:meth:`CovarianceModel.iter_labelled_blocks`).
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 from numpy.typing import NDArray
 
@@ -26,7 +25,11 @@ from semantic3d.baselines.common.run import (
     describe_hardware,
 )
 from semantic3d.baselines.covariance.context import lists_suffice, row_centroids
-from semantic3d.baselines.covariance.model import CovarianceModel, point_tiles
+from semantic3d.baselines.covariance.model import (
+    CovarianceModel,
+    concurrent_scans_supported,
+    point_tiles,
+)
 from semantic3d.core.pointcloud import PointCloud
 from semantic3d.features.multiscale import compute_multiscale_features
 from semantic3d.features.pyramid import grid_origin
@@ -63,19 +66,3 @@ def predict_cloud(model: CovarianceModel, cloud: PointCloud) -> NDArray[np.uint8
         table.values, row_xyz=row_xyz, row_tile=row_tile, neighbours=table.neighbours
     )
     return labels[table.point_row]
-
-
-def concurrent_scans_supported() -> bool:
-    """Whether scans can be labelled on several threads at once
-    (``predict_scans(..., parallel_scans=2)``): the model's compiled kernels are then
-    launched from several threads, which numba's ``tbb`` and ``omp`` threading layers
-    allow and its ``workqueue`` fallback (no TBB, no OpenMP runtime) does not."""
-    _touch_threading_layer(np.zeros(1))
-    return str(numba.threading_layer()) != "workqueue"
-
-
-@numba.njit(cache=True, nogil=True, parallel=True)
-def _touch_threading_layer(values: NDArray[np.float64]) -> None:  # pragma: no cover - compiled
-    """A parallel kernel's first launch picks numba's threading layer."""
-    for index in numba.prange(values.size):
-        values[index] = 0.0
