@@ -30,6 +30,27 @@ def test_demo_runs_end_to_end_without_real_data(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
+def test_demo_serve_scores_the_demo_submission_on_the_server(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # everything `make demo` runs up to the point where the server starts listening
+    import uvicorn
+
+    started: list[object] = []
+    monkeypatch.setattr(uvicorn, "run", lambda app, **options: started.append(app))
+    out = tmp_path / "demo"
+    served = runner.invoke(
+        app,
+        ["demo", "--out", str(out), "--data", str(tmp_path / "none"), "--points", "60000",
+         "--serve"],
+    )  # fmt: skip
+    assert served.exit_code == 0, served.output
+    assert "invalid submission" not in served.output and "warning" not in served.output
+    assert "leaderboard" in served.output and len(started) == 1
+    assert not (out / "server-data" / "demo-predictions.zip").exists()
+
+
+@pytest.mark.slow
 def test_demo_converts_the_real_samples(tmp_path: Path, shared_data: Path) -> None:
     data = tmp_path / "data" / "oakland"
     data.mkdir(parents=True)

@@ -59,7 +59,13 @@ def demo(
     if serve:
         from semantic3d.cli.server import serve_demo
 
-        serve_demo(out, result=result, ground_truth=out / "challenge", port=port)
+        serve_demo(
+            out,
+            result=result,
+            ground_truth=out / "challenge",
+            predictions=out / "submission",
+            port=port,
+        )
 
 
 def _real_samples(data: Path, out: Path) -> None:

@@ -326,7 +326,8 @@ def serve_demo(
     """``semantic3d demo --serve``: a server on ``out/server-data`` showing the demo's result.
 
     ``result`` is the demo's own :class:`~semantic3d.evaluation.EvaluationResult`; the
-    server scores the predictions (``out/predictions``) itself and the two must agree.
+    server scores the demo's submission (``out/submission``, the ``.labels`` files named as
+    the ground truth's) itself and the two must agree.
     """
     with guarded():
         import uvicorn
@@ -343,7 +344,7 @@ def serve_demo(
             _database(settings),
             settings,
             ground_truth=ground_truth,
-            predictions=predictions or out / "predictions",
+            predictions=predictions or out / "submission",
             method=method,
         )
         if demo.mean_iou is None or abs(demo.mean_iou - result.scores.mean_iou) > 1e-12:

@@ -108,16 +108,18 @@ def prepare_demo(
         user = create_user(factory, DEMO_USER, password)
         token = create_token(factory, user.id, "demo")[1]
     archive = zip_predictions(predictions, settings.data_dir / "demo-predictions.zip")
-    submission = import_submission(
-        factory,
-        settings,
-        cache,
-        user_id=user.id,
-        challenge=DEMO_CHALLENGE,
-        path=archive,
-        method=method,
-    )
-    archive.unlink()
+    try:
+        submission = import_submission(
+            factory,
+            settings,
+            cache,
+            user_id=user.id,
+            challenge=DEMO_CHALLENGE,
+            path=archive,
+            method=method,
+        )
+    finally:
+        archive.unlink()
     Worker(settings, factory, cache=cache).run_once()
     with factory() as session:
         evaluated = session.get_one(Submission, submission.id)
