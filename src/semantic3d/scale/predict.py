@@ -34,7 +34,7 @@ from semantic3d.baselines.common.prediction import (
 )
 from semantic3d.baselines.common.run import PredictionRun, PredictionRunSet
 from semantic3d.baselines.common.submission import ScanToLabel
-from semantic3d.baselines.covariance.context import lists_suffice, row_centroids
+from semantic3d.baselines.covariance.context import row_centroids
 from semantic3d.baselines.covariance.model import CovarianceModel
 from semantic3d.core.pointcloud import PointCloud
 from semantic3d.features.tiling import TiledScan
@@ -139,7 +139,7 @@ def label_tile(scan_folder: str, scan_state: bytes, model_path: str, tile: TileK
     model = _load_pickled_model(model_path)
     table = features.table
     row_xyz = None
-    if model.context.enabled and not lists_suffice(table.neighbours, model.context.n_neighbours):
+    if model.needs_row_positions(table):
         # positions relative to the grid origin, as in one process
         relative = (features.xyz - opened.origin).astype(np.float32)
         row_xyz = row_centroids(relative, table.point_row, table.n_rows)

@@ -286,23 +286,20 @@ def label_rows_by_group(
     if potts_weight <= 0 or n < 2:
         return np.argmax(proba, axis=1).astype(np.int64)
     groups, inverse = np.unique(row_group, return_inverse=True)
+    if groups.size <= 1:
+        return label_rows(
+            proba,
+            row_xyz,
+            potts_weight=potts_weight,
+            n_neighbours=n_neighbours,
+            max_sweeps=max_sweeps,
+            neighbours=neighbours,
+        )
     edges = (
         graph_edges(n, None, n_neighbours=n_neighbours, neighbours=neighbours)
         if lists_suffice(neighbours, n_neighbours)
         else None
     )
-    if groups.size <= 1:
-        if edges is None:
-            return label_rows(
-                proba,
-                row_xyz,
-                potts_weight=potts_weight,
-                n_neighbours=n_neighbours,
-                max_sweeps=max_sweeps,
-            )
-        return alpha_expansion(
-            unary_costs(proba), edges, weight=potts_weight, max_sweeps=max_sweeps
-        )
     result = np.empty(n, np.int64)
     order = np.argsort(inverse, kind="stable")
     bounds = np.searchsorted(inverse[order], np.arange(groups.size + 1))

@@ -23,6 +23,7 @@ from semantic3d.baselines.covariance.context import (
 from semantic3d.baselines.covariance.forest import CompiledClassifier
 from semantic3d.core.errors import ShapeError
 from semantic3d.core.pointcloud import PointCloud
+from semantic3d.features.multiscale import FeatureTable
 from semantic3d.features.pyramid import grid_origin
 from semantic3d.spatial.grid import TileGrid
 
@@ -138,13 +139,12 @@ class CovarianceModel:
                 row_labels = self.predict_rows(block.table.values)
             else:
                 table = block.table
-                if lists_suffice(table.neighbours, self.context.n_neighbours):
-                    # the graph comes with the features: only the rows' tiles are needed
-                    row_xyz = None
-                    tiles = positions.read_tiles(block.point_indices)
-                else:
+                if self.needs_row_positions(table):
                     xyz, tiles = positions.read(block.point_indices)
                     row_xyz = row_centroids(xyz, table.point_row, table.n_rows)
+                else:  # the graph comes with the features: only the rows' tiles are needed
+                    row_xyz = None
+                    tiles = positions.read_tiles(block.point_indices)
                 row_tile = np.zeros(table.n_rows, np.int64)
                 row_tile[table.point_row] = tiles
                 row_labels = self.predict_rows(
@@ -159,6 +159,14 @@ class CovarianceModel:
                 block.n_scan_points,
                 tiled=block.tiled,
             )
+
+    def needs_row_positions(self, table: FeatureTable) -> bool:
+        """Whether :meth:`predict_rows` needs ``row_xyz`` for ``table``: the context step is
+        on and the table's neighbour lists are too short for its graph (per-point mode, a
+        scan of a few voxels, or ``n_neighbours`` not below the features' k)."""
+        return self.context.enabled and not lists_suffice(
+            table.neighbours, self.context.n_neighbours
+        )
 
     @property
     def max_parallel_scans(self) -> int:

@@ -24,7 +24,7 @@ from semantic3d.baselines.common.run import (
     PredictionRunSet,
     describe_hardware,
 )
-from semantic3d.baselines.covariance.context import lists_suffice, row_centroids
+from semantic3d.baselines.covariance.context import row_centroids
 from semantic3d.baselines.covariance.model import (
     CovarianceModel,
     concurrent_scans_supported,
@@ -59,7 +59,7 @@ def predict_cloud(model: CovarianceModel, cloud: PointCloud) -> NDArray[np.uint8
     row_tile = np.zeros(table.n_rows, np.int64)
     row_tile[table.point_row] = point_tiles(cloud.xyz, origin=origin, config=model.config)
     row_xyz = None
-    if not lists_suffice(table.neighbours, model.context.n_neighbours):
+    if model.needs_row_positions(table):
         relative = (cloud.xyz - origin).astype(np.float32)
         row_xyz = row_centroids(relative, table.point_row, table.n_rows)
     labels = model.predict_rows(
