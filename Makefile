@@ -11,12 +11,18 @@ $(BIN)/python:
 	$(BIN)/python -m pip install --quiet --upgrade pip
 
 # Stamp files record which extras are installed; they are rebuilt when pyproject changes.
+# The demo installs only what it runs (extra `demo`: formats, simulator, covariance baseline,
+# plots, server; no torch, Dask or image stack); `make test` installs everything.
 $(VENV)/.demo-installed: pyproject.toml | $(BIN)/python
-	$(BIN)/python -m pip install --quiet -e '.[all]'
+	@echo "installing semantic3d with the demo's extras (las, ply, viz, sim, ml, server):" \
+	  "about 600 MB, a minute or two on a first run"
+	$(BIN)/python -m pip install --progress-bar on -e '.[demo]'
 	touch $@
 
 $(VENV)/.test-installed: pyproject.toml | $(BIN)/python
-	$(BIN)/python -m pip install --quiet -e '.[test]'
+	@echo "installing semantic3d with every extra and the test tools (torch included: several GB" \
+	  "on a first run)"
+	$(BIN)/python -m pip install --progress-bar on -e '.[test]'
 	touch $@ $(VENV)/.demo-installed
 
 DEMO_ARGS ?= --serve

@@ -93,7 +93,46 @@ def test_a_labels_out_names_the_file(model_file: Path, data: Path, tmp_path: Pat
     code, output = _predict(
         str(data / "b.txt"), "--model", str(model_file), "--out", str(data / "b.labels")
     )
-    assert code == 2 and "already exists" in output
+    assert code == 2 and "is the ground truth of the scan b.txt" in output
+
+
+@pytest.mark.parametrize(
+    "out_form", ["folder", "labels-file", "hard-link", "other-scan"], ids=lambda f: f
+)
+def test_a_prediction_never_replaces_the_ground_truth_even_with_overwrite(
+    model_file: Path, data: Path, tmp_path: Path, out_form: str
+) -> None:
+    before = {path.name: path.read_bytes() for path in data.iterdir()}
+    if out_form == "folder":  # --data into the scans' own folder
+        args = ["--data", str(data), "--out", str(data)]
+    elif out_form == "labels-file":  # one scan onto its own NAME.labels
+        args = [str(data / "a.txt"), "--out", str(data / "a.labels")]
+    elif out_form == "hard-link":  # another name of the same file
+        link = tmp_path / "elsewhere" / "a.labels"
+        link.parent.mkdir()
+        os.link(data / "a.labels", link)
+        args = ["--data", str(data), "--out", str(link.parent)]
+    else:  # one scan's output over another scan's ground truth
+        args = [str(data / "a.txt"), "--out", str(data / "b.labels")]
+    code, output = _predict(*args, "--model", str(model_file), "--overwrite")
+    assert code == 2
+    lines = [line for line in output.splitlines() if line.strip()]
+    assert len(lines) == 1 and "is the ground truth of the scan" in lines[0], output
+    assert {path.name: path.read_bytes() for path in data.iterdir()} == before
+
+
+def test_the_library_refuses_the_ground_truth_too(model: CovarianceModel, data: Path) -> None:
+    from semantic3d.baselines.common.prediction import predict_scan
+    from semantic3d.core.errors import GroundTruthOutputError
+
+    truth = (data / "a.labels").read_bytes()
+    with pytest.raises(GroundTruthOutputError, match=r"a\.labels: is the ground truth"):
+        predict_scan(model, data / "a.txt", out_path=data / "a.labels", overwrite=True)
+    scans = find_scans_to_label(data)
+    with pytest.raises(GroundTruthOutputError, match="is the ground truth of the scan"):
+        predict_scans(model, scans, data, overwrite=True)
+    assert (data / "a.labels").read_bytes() == truth
+    assert not (data / "a.labels.json").exists()
 
 
 def test_predict_a_folder_then_evaluate_it_as_it_is(

@@ -17,7 +17,7 @@ from semantic3d.baselines.covariance.training import (
     find_labelled_scans,
     fit_model,
 )
-from semantic3d.core.errors import OutputExistsError
+from semantic3d.core.errors import GroundTruthOutputError, OutputExistsError
 from semantic3d.features import FeatureConfig
 from semantic3d.io.ascii import read_ascii_points
 from semantic3d.io.labels import read_labels
@@ -79,9 +79,13 @@ def test_an_existing_output_is_refused_before_any_work(
 ) -> None:
     truth = scene_dir / "test.labels"
     before = truth.read_bytes()
-    with pytest.raises(OutputExistsError, match=r"test\.labels: already exists.*overwrite"):
+    with pytest.raises(GroundTruthOutputError, match=r"test\.labels: is the ground truth"):
         predict_scan(model, scene_dir / "test.txt", out_path=truth)
     assert truth.read_bytes() == before
+    (tmp_path / "p.labels").write_bytes(b"1\n")
+    with pytest.raises(OutputExistsError, match=r"p\.labels: already exists.*overwrite=True"):
+        predict_scan(model, scene_dir / "test.txt", out_path=tmp_path / "p.labels")
+    (tmp_path / "p.labels").unlink()
     (tmp_path / "p.labels.json").write_text("{}")
     with pytest.raises(OutputExistsError, match=r"p\.labels\.json: already exists"):
         predict_scan(model, scene_dir / "test.txt", out_path=tmp_path / "p.labels")

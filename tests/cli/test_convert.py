@@ -155,6 +155,10 @@ def test_info_on_a_real_sample(shared_data: Path) -> None:
     assert "870200.010" in result.stdout  # georeferenced bounds to the millimetre
 
 
+def _default_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _interrupt_a_conversion(tmp_path: Path, n_points: int) -> tuple[int, bytes]:
     """Start ``semantic3d convert`` and send it SIGINT once the partial output has content."""
     source = tmp_path / "big.txt"
@@ -169,6 +173,10 @@ def _interrupt_a_conversion(tmp_path: Path, n_points: int) -> tuple[int, bytes]:
         [*command, "--chunk-size", "2000", "--overwrite"],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
+        # A process started with SIGINT ignored (a background job, setsid, some CI runners)
+        # passes that on, and Python then never raises KeyboardInterrupt: the command gets
+        # the default disposition, as it would in a terminal.
+        preexec_fn=_default_sigint,
     )
     try:
         deadline = time.monotonic() + 60

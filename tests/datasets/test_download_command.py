@@ -88,3 +88,20 @@ def test_unknown_split_is_a_usage_error(tmp_path: Path) -> None:
 
     assert result.exit_code == 2
     assert "'test' is not one of" in result.output
+
+
+def test_a_wait_before_a_retry_shows_on_the_archive_s_line() -> None:
+    from rich.progress import Progress
+
+    from semantic3d.cli.download import _ProgressTasks
+    from semantic3d.datasets.download import DownloadProgress
+
+    with Progress() as bar:
+        tasks = _ProgressTasks(bar)
+        tasks(DownloadProgress("http://m/a.7z", "a.7z", 0, 100))
+        tasks(DownloadProgress("http://m/a.7z", "a.7z", 0, None, "HTTP 503; retry 1/5 in 1 s"))
+        (task,) = bar.tasks
+        assert task.description == "a: HTTP 503; retry 1/5 in 1 s"
+        assert task.total == 100  # the wait does not forget the size
+        tasks(DownloadProgress("http://m/a.7z", "a.7z", 40, 100))
+        assert task.description == "a" and task.completed == 40

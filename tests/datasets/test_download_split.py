@@ -179,6 +179,44 @@ def test_transient_errors_are_retried(tmp_path: Path, full_mirror, benchmark_fil
     )
 
 
+def test_each_wait_before_a_retry_is_reported(tmp_path: Path, full_mirror) -> None:
+    info = scan("stgallencathedral_station6_reduced")
+    full_mirror.script[full_mirror.url_path(info.points.archive)] = ["503", "503"]
+    events: list[DownloadProgress] = []
+
+    download_file(
+        full_mirror.base_url + info.points.archive,
+        tmp_path / "archive.7z",
+        progress=events.append,
+        backoff_s=0.001,
+        retries=3,
+    )
+
+    waits = [event.waiting for event in events if event.waiting is not None]
+    assert waits == [
+        "HTTP 503 Service Unavailable; retry 1/3 in 0 s",
+        "HTTP 503 Service Unavailable; retry 2/3 in 0 s",
+    ]
+    assert events[-1].waiting is None and events[-1].done_bytes == events[-1].total_bytes
+
+
+def test_a_host_that_does_not_resolve_fails_at_once(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import socket
+    import time
+
+    def no_address(*args: object, **kwargs: object) -> None:
+        raise socket.gaierror(socket.EAI_NONAME, "Name or service not known")
+
+    monkeypatch.setattr(socket, "getaddrinfo", no_address)
+    started = time.monotonic()
+    with pytest.raises(DownloadError, match=r"expected the host mirror\.example to resolve"):
+        download_file("http://mirror.example/x.7z", tmp_path / "x.7z", retries=5, backoff_s=30)
+    assert time.monotonic() - started < 5  # no backoff: 30 s would be the first wait
+    assert not (tmp_path / "x.7z.part").exists()
+
+
 def test_retries_run_out_and_the_error_names_the_scan(tmp_path: Path, full_mirror) -> None:
     info = scan("stgallencathedral_station6_reduced")
     full_mirror.always[full_mirror.url_path(info.points.archive)] = "503"

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import importlib
 import logging
+import os
 
 import typer
 
@@ -55,6 +56,22 @@ def _root(
         level=logging.INFO if verbose else logging.WARNING,
         format="%(levelname)s %(name)s: %(message)s",
     )
+    if not verbose:
+        _quiet_other_libraries()
+
+
+def _quiet_other_libraries() -> None:
+    """Without ``-v`` only this package logs: a library's own error lines (laspy's on a
+    truncated LAZ file) would come before, and say less than, the one line the command
+    prints; Dask's scheduler and workers (their own processes too, through the
+    environment they inherit) log warnings and errors only."""
+    for handler in logging.getLogger().handlers:
+        handler.addFilter(_this_package_or_critical)
+    os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "warning")
+
+
+def _this_package_or_critical(record: logging.LogRecord) -> bool:
+    return record.name.partition(".")[0] == "semantic3d" or record.levelno >= logging.CRITICAL
 
 
 for _module_name in _COMMAND_MODULES:

@@ -252,13 +252,12 @@ def _predict(
     from semantic3d.baselines.common.prediction import parallel_scans_limit
     from semantic3d.baselines.common.submission import (
         is_zip_output,
-        planned_outputs,
-        refuse_existing_outputs,
+        refuse_unsafe_outputs,
     )
     from semantic3d.baselines.covariance.persistence import load_model
     from semantic3d.baselines.covariance.predict import predict_scans
 
-    refuse_existing_outputs(planned_outputs(target, scans), overwrite=overwrite)
+    refuse_unsafe_outputs(target, scans, overwrite=overwrite)
     model = load_model(model_path)
     on_cluster = cluster_options != (None, None)
     if parallel_scans is None:  # 2 where it is safe and helps

@@ -188,15 +188,14 @@ def predict(
         from semantic3d.baselines.common.prediction import predict_scans
         from semantic3d.baselines.common.submission import (
             is_zip_output,
-            planned_outputs,
-            refuse_existing_outputs,
+            refuse_unsafe_outputs,
         )
         from semantic3d.cli.baseline import ChallengeChoice as CovarianceChallenge
         from semantic3d.cli.baseline import _print_runs, _scans_and_target
 
         chosen = None if challenge is None else CovarianceChallenge(challenge.value)
         scans_to_label, target = _scans_and_target(scan, data, out, chosen)
-        refuse_existing_outputs(planned_outputs(target, scans_to_label), overwrite=overwrite)
+        refuse_unsafe_outputs(target, scans_to_label, overwrite=overwrite)
         model = load_model(model_path, device=device.value)
         with open_cluster(scheduler, workers) as cluster, progress_bar() as bar:
             task = bar.add_task(f"labelling {plural(len(scans_to_label), 'scan')}", total=None)

@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING
 
 import typer
 
-from semantic3d.core.errors import MissingExtraError, Semantic3DError
+from semantic3d.core.errors import MissingExtraError, OutputExistsError, Semantic3DError
 
 if TYPE_CHECKING:
     from rich.console import Console
@@ -102,6 +102,9 @@ def plural(count: int, noun: str, plural_noun: str | None = None) -> str:
 
 def _error_message(exc: BaseException) -> str | None:
     """The one-line message for an error that is the user's environment, not a bug."""
+    if isinstance(exc, OutputExistsError) and exc.path is not None:
+        more = f" (and {plural(exc.n_more, 'other output')})" if exc.n_more else ""
+        return f"{exc.path}: already exists{more}; pass --overwrite to replace it"
     if isinstance(exc, Semantic3DError):
         return str(exc)
     if isinstance(exc, ModuleNotFoundError) and exc.name:
@@ -116,18 +119,46 @@ def _error_message(exc: BaseException) -> str | None:
 
 
 def run_guarded(app: Callable[..., object]) -> None:
-    """Run ``app``, turning package errors into one red line and exit code 2."""
+    """Run ``app``, turning package errors and command-line mistakes into one red line and
+    exit code 2 (a missing path is ``error: semantic3d info: invalid value for 'path': path
+    'x.txt' does not exist (see semantic3d info --help)``, not click's usage block)."""
     try:
-        app(standalone_mode=True)
-    except KeyboardInterrupt:
-        _err_console().print("[yellow]interrupted[/]")
-        sys.exit(130)
+        result = app(standalone_mode=False)
+    except (KeyboardInterrupt, typer.Abort):
+        result = 130
     except (Semantic3DError, ImportError, OSError) as exc:
         message = _error_message(exc)
         if message is None:
             raise
         print_error(message)
         sys.exit(2)
+    except Exception as exc:
+        if not isinstance(exc, _click_class("ClickException")):
+            raise
+        if type(exc).__name__ == "NoArgsIsHelpError":  # a bare command group: its help
+            exc.show()  # type: ignore[attr-defined]
+        else:
+            print_error(_usage_message(exc))
+        sys.exit(exc.exit_code)  # type: ignore[attr-defined]
+    if result == 130:  # Ctrl-C (typer turns it into this exit code)
+        _err_console().print("[yellow]interrupted[/]")
+    sys.exit(result if isinstance(result, int) else 0)
+
+
+def _click_class(name: str) -> type:
+    """click's ``ClickException`` or ``UsageError``, whichever click typer runs on (a
+    vendored copy in recent releases), found among the bases of ``typer.BadParameter``."""
+    return next(base for base in typer.BadParameter.__mro__ if base.__name__ == name)
+
+
+def _usage_message(exc: Exception) -> str:
+    """One line for a command-line mistake: the command, the message, where help is."""
+    message = exc.format_message().rstrip(".")  # type: ignore[attr-defined]
+    message = message[:1].lower() + message[1:]
+    context = getattr(exc, "ctx", None)
+    if isinstance(exc, _click_class("UsageError")) and context is not None:
+        return f"{context.command_path}: {message} (see {context.command_path} --help)"
+    return message
 
 
 @contextmanager

@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING
 import typer
 
 from semantic3d.cli import console as ui
-from semantic3d.cli.console import guarded, plural, progress_bar
+from semantic3d.cli.console import escape, guarded, plural, progress_bar
 
 if TYPE_CHECKING:
     from rich.progress import Progress, TaskID
@@ -44,6 +44,7 @@ class _ProgressTasks:
     def __init__(self, bar: Progress) -> None:
         self.bar = bar
         self.tasks: dict[str, TaskID] = {}
+        self.labels: dict[str, str] = {}
 
     def __call__(self, event: DownloadProgress) -> None:
         task = self.tasks.get(event.filename)
@@ -52,7 +53,14 @@ class _ProgressTasks:
             label = label if len(label) <= _LABEL_CHARS else label[: _LABEL_CHARS - 1] + "…"
             task = self.bar.add_task(label, total=event.total_bytes)
             self.tasks[event.filename] = task
-        self.bar.update(task, completed=event.done_bytes, total=event.total_bytes)
+            self.labels[event.filename] = label
+        label = self.labels[event.filename]
+        if event.waiting is not None:  # the same line says why it waits, and how long
+            self.bar.update(task, description=f"{label}: {escape(event.waiting)}")
+            return
+        self.bar.update(
+            task, description=label, completed=event.done_bytes, total=event.total_bytes
+        )
 
 
 def _print_status(dataset: Semantic3D, split: Split | None) -> None:

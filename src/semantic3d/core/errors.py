@@ -9,6 +9,7 @@ this package. Messages say where, what was expected and what was found, e.g.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from pathlib import Path
 
 
 class Semantic3DError(Exception):
@@ -41,19 +42,36 @@ class ShapeError(Semantic3DError, ValueError):
 
 
 class MissingExtraError(Semantic3DError, ImportError):
-    """An optional dependency is not installed; the message names the extra to install."""
+    """An optional dependency is not installed; the message names the extra to install.
+
+    The message names the extra, not the module that failed to import (``sklearn.base``
+    means nothing to a user who never asked for it); ``package`` keeps the module.
+    """
 
     def __init__(self, package: str, extra: str) -> None:
         super().__init__(
-            f"this feature needs the optional package {package!r}: "
-            f"pip install 'semantic3d[{extra}]'"
+            f"this feature needs the optional extra [{extra}]: pip install 'semantic3d[{extra}]'"
         )
         self.package = package
         self.extra = extra
 
 
 class OutputExistsError(Semantic3DError, FileExistsError):
-    """An output file exists and the caller did not ask to overwrite it."""
+    """An output file exists and the caller did not ask to overwrite it.
+
+    Made by :func:`refuse_existing_paths`, it keeps the first existing path and how many
+    more there are, so the command line can name its own flag (``--overwrite``) where the
+    library names its argument (``overwrite=True``).
+    """
+
+    def __init__(self, message: str, *, path: str | None = None, n_more: int = 0) -> None:
+        super().__init__(message)
+        self.path = path
+        self.n_more = n_more
+
+
+class GroundTruthOutputError(Semantic3DError, ValueError):
+    """An output would replace the ground truth (``NAME.labels``) of a scan being read."""
 
 
 class DownloadError(Semantic3DError, OSError):
@@ -71,6 +89,22 @@ class SubmissionError(Semantic3DError, ValueError):
         lines = "\n".join(f"  - {problem}" for problem in self.problems)
         noun = "problem" if count == 1 else "problems"
         super().__init__(f"{head}invalid submission, {count} {noun}:\n{lines}")
+
+
+def refuse_existing_paths(paths: Sequence[Path], *, overwrite: bool) -> None:
+    """Raise :class:`OutputExistsError` naming the first of ``paths`` that exists (a
+    dangling link counts), unless ``overwrite``."""
+    if overwrite:
+        return
+    existing = [path for path in paths if path.exists() or path.is_symlink()]
+    if existing:
+        n_more = len(existing) - 1
+        more = f" (and {n_more} more)" if n_more else ""
+        raise OutputExistsError(
+            f"{existing[0]}: already exists{more}; pass overwrite=True to replace it",
+            path=str(existing[0]),
+            n_more=n_more,
+        )
 
 
 def require(package: str, extra: str) -> object:

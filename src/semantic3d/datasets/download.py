@@ -10,7 +10,8 @@ side by side in ``folder``. The guarantees:
 - files already present are skipped, and an interrupted ``.part`` is continued with an HTTP
   ``Range`` request (on a later run, or on a retry after a dropped connection);
 - transient failures (dropped connections, short bodies, timeouts, HTTP 408/429/5xx) are
-  retried with exponential backoff; other HTTP errors fail at once;
+  retried with exponential backoff, each wait reported to the progress callback; other
+  HTTP errors, and a host name that does not resolve, fail at once;
 - one scan failing does not stop the others: every scan is attempted, then
   :class:`IncompleteDownloadError` lists each failure with its cause.
 
@@ -23,8 +24,10 @@ import contextlib
 import http.client
 import logging
 import re
+import socket
 import time
 import urllib.error
+import urllib.parse
 import urllib.request
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
@@ -60,13 +63,16 @@ _CONTENT_RANGE = re.compile(r"bytes\s+(\d+)-(\d+)/(\d+|\*)")
 class DownloadProgress:
     """A progress report for one archive: ``done_bytes`` of ``total_bytes`` (``None``: unknown).
 
-    ``done_bytes`` starts at the size of a resumed ``.part`` file, not at zero.
+    ``done_bytes`` starts at the size of a resumed ``.part`` file, not at zero. While the
+    download waits to retry, ``waiting`` says why and for how long
+    (``connection failed: ...; retry 2/5 in 2 s``); it is ``None`` while bytes flow.
     """
 
     url: str
     filename: str
     done_bytes: int
     total_bytes: int | None
+    waiting: str | None = None
 
 
 ProgressCallback = Callable[[DownloadProgress], None]
@@ -296,7 +302,11 @@ def download_file(
                     f"{url}: gave up after {failures} failed attempts: {exc}{kept}"
                 ) from exc
             delay = backoff_s * 2 ** (failures - 1)
-            logger.info("%s: %s; retry %d/%d in %.1f s", url, exc, failures, retries, delay)
+            waiting = f"{exc}; retry {failures}/{retries} in {delay:.0f} s"
+            logger.info("%s: %s", url, waiting)
+            if progress is not None:
+                done = part.stat().st_size if part.exists() else 0
+                progress(DownloadProgress(url, destination.name, done, None, waiting))
             time.sleep(delay)
     part.replace(destination)
     return destination
@@ -324,6 +334,14 @@ def _download_once(
             raise _TransientError(f"HTTP {exc.code} {exc.reason}") from exc
         raise DownloadError(f"{url}: HTTP {exc.code} {exc.reason}") from exc
     except (urllib.error.URLError, OSError, http.client.HTTPException) as exc:
+        if isinstance(getattr(exc, "reason", exc), socket.gaierror):
+            # The name does not resolve (no network, or a wrong address): trying again
+            # a few seconds later would only make the user wait for the same answer.
+            host = urllib.parse.urlsplit(url).hostname
+            raise DownloadError(
+                f"{url}: expected the host {host} to resolve, found no address for it "
+                f"({_reason(exc)}); check the network or --url"
+            ) from exc
         raise _TransientError(f"connection failed: {_reason(exc)}") from exc
 
     with response:

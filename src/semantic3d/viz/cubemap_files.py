@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from semantic3d.core.errors import OutputExistsError, require
+from semantic3d.core.errors import refuse_existing_paths, require
 from semantic3d.viz.cubemap import FACE_NAMES, CubeMap
 
 __all__ = [
@@ -43,17 +43,6 @@ def cubemap_outputs(out: str | Path, *, with_labels: bool = True) -> list[Path]:
     kinds = ("rgb", "labels") if with_labels else ("rgb",)
     faces = [folder / f"{kind}_{face}.png" for kind in kinds for face in FACE_NAMES]
     return [*faces, folder / _INDEX, folder / _DESCRIPTION]
-
-
-def _refuse(paths: list[Path], overwrite: bool) -> None:
-    if overwrite:
-        return
-    existing = [path for path in paths if path.exists() or path.is_symlink()]
-    if existing:
-        more = f" (and {len(existing) - 1} more)" if len(existing) > 1 else ""
-        raise OutputExistsError(
-            f"{existing[0]}: already exists{more}; pass --overwrite (overwrite=True) to replace it"
-        )
 
 
 def _atomic(path: Path, write: Callable[[Path], object]) -> None:
@@ -99,7 +88,7 @@ def write_cubemap(cubemap: CubeMap, out: str | Path, *, overwrite: bool = False)
     folder = Path(out)
     with_labels = cubemap.labels is not None
     paths = cubemap_outputs(folder, with_labels=with_labels)
-    _refuse(paths, overwrite)
+    refuse_existing_paths(paths, overwrite=overwrite)
     folder.mkdir(parents=True, exist_ok=True)
     for number, face in enumerate(FACE_NAMES):
         write_png(folder / f"rgb_{face}.png", cubemap.rgb[number])

@@ -34,8 +34,9 @@ from semantic3d.baselines.common.submission import (
     RUN_RECORD_SUFFIX,
     ScanToLabel,
     is_zip_output,
-    planned_outputs,
     refuse_existing_outputs,
+    refuse_ground_truth_outputs,
+    refuse_unsafe_outputs,
     staged_folder,
     write_atomic_text,
     write_submission_zip,
@@ -124,6 +125,8 @@ def predict_scan(
     Raises:
         OutputExistsError: ``out_path`` or its run record exists and ``overwrite`` is False
             (checked before any work).
+        GroundTruthOutputError: ``out_path`` is the scan's own ``NAME.labels``, its ground
+            truth (refused even with ``overwrite``).
         ShapeError: the predictor left points without a label.
     """
     from semantic3d.io.formats import iter_points
@@ -133,6 +136,7 @@ def predict_scan(
     points_path = Path(points_path)
     out = Path(out_path)
     record = out.with_name(out.name + RUN_RECORD_SUFFIX)
+    refuse_ground_truth_outputs([points_path], [out, record])
     refuse_existing_outputs([out, record], overwrite=overwrite)
     chunk_size = predictor.chunk_size
     with tempfile.TemporaryDirectory(prefix="s3d-predict-", dir=workdir) as scratch:
@@ -209,6 +213,7 @@ def predict_scans(
     Raises:
         OutputExistsError: an output exists and ``overwrite`` is False (checked before
             any work, naming the first one).
+        GroundTruthOutputError: an output is the ground truth of one of ``scans``.
         ValueError: ``parallel_scans`` < 1.
     """
     from semantic3d.io.formats import estimate_point_count
@@ -220,7 +225,7 @@ def predict_scans(
         parallel_scans = min(parallel_scans, limit)
     started = time.perf_counter()
     out = Path(out)
-    refuse_existing_outputs(planned_outputs(out, scans), overwrite=overwrite)
+    refuse_unsafe_outputs(out, scans, overwrite=overwrite)
     estimates = [estimate_point_count(scan.points_path).n_points for scan in scans]
     runs: list[PredictionRun] = []
 

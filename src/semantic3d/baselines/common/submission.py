@@ -25,7 +25,11 @@ from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from semantic3d.core.errors import OutputExistsError, Semantic3DError
+from semantic3d.core.errors import (
+    GroundTruthOutputError,
+    Semantic3DError,
+    refuse_existing_paths,
+)
 
 __all__ = [
     "LABELS_SUFFIX",
@@ -33,9 +37,12 @@ __all__ = [
     "ScanToLabel",
     "SubmissionLayoutError",
     "find_scans_to_label",
+    "ground_truth_path",
     "is_zip_output",
     "planned_outputs",
     "refuse_existing_outputs",
+    "refuse_ground_truth_outputs",
+    "refuse_unsafe_outputs",
     "staged_folder",
     "write_atomic_text",
     "write_submission_zip",
@@ -131,14 +138,49 @@ def planned_outputs(out: Path, scans: Sequence[ScanToLabel]) -> list[Path]:
 
 def refuse_existing_outputs(paths: Sequence[Path], *, overwrite: bool) -> None:
     """Raise :class:`OutputExistsError` naming the first of ``paths`` that exists."""
-    if overwrite:
-        return
-    existing = [path for path in paths if path.exists() or path.is_symlink()]
-    if existing:
-        more = f" (and {len(existing) - 1} more)" if len(existing) > 1 else ""
-        raise OutputExistsError(
-            f"{existing[0]}: already exists{more}; pass --overwrite (overwrite=True) to replace it"
-        )
+    refuse_existing_paths(paths, overwrite=overwrite)
+
+
+def refuse_unsafe_outputs(out: Path, scans: Sequence[ScanToLabel], *, overwrite: bool) -> None:
+    """Before a run writing ``scans`` to ``out``: refuse to write over the ground truth of
+    any of them (:func:`refuse_ground_truth_outputs`), then over an existing output unless
+    ``overwrite`` (:func:`refuse_existing_outputs`)."""
+    outputs = planned_outputs(out, scans)
+    refuse_ground_truth_outputs([scan.points_path for scan in scans], outputs)
+    refuse_existing_outputs(outputs, overwrite=overwrite)
+
+
+def ground_truth_path(points_path: Path) -> Path:
+    """Where a scan's ground truth lives: ``NAME.labels`` beside ``NAME.txt`` (or beside
+    any other point file or cache folder of that name)."""
+    return points_path.with_suffix(LABELS_SUFFIX)
+
+
+def refuse_ground_truth_outputs(scans: Sequence[Path], outputs: Sequence[Path]) -> None:
+    """Raise :class:`GroundTruthOutputError` when one of ``outputs`` is a scan's ground truth:
+    the ``NAME.labels`` of one of ``scans`` (the same path, or another name of the same
+    file), or a ``NAME.labels`` with an ASCII scan ``NAME.txt`` / ``NAME.xyz`` beside it.
+
+    ``overwrite`` does not lift this: it is for earlier outputs, and a prediction written
+    over a scan's labels would destroy what the scan is scored against.
+    """
+    from semantic3d.io.formats import ASCII_SUFFIXES
+
+    truths = {ground_truth_path(Path(scan)): Path(scan) for scan in scans}
+    resolved = {truth.resolve(): scan for truth, scan in truths.items()}
+    for output in map(Path, outputs):
+        scan = resolved.get(output.resolve())
+        if scan is None and output.exists():
+            scan = next((s for t, s in truths.items() if t.exists() and t.samefile(output)), None)
+        if scan is None and output.suffix == LABELS_SUFFIX:
+            beside = (output.with_suffix(suffix) for suffix in ASCII_SUFFIXES)
+            scan = next((path for path in beside if path.is_file()), None)
+        if scan is not None:
+            raise GroundTruthOutputError(
+                f"{output}: is the ground truth of the scan {scan.name} (NAME.labels beside "
+                "the scan); a prediction never replaces it, even with overwrite: choose "
+                "another output folder"
+            )
 
 
 def _run_record_path(path: Path) -> Path:

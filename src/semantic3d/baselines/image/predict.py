@@ -16,10 +16,14 @@ import numpy as np
 
 from semantic3d.baselines.common.prediction import Progress, predict_scan
 from semantic3d.baselines.common.run import PredictionRun
-from semantic3d.baselines.common.submission import RUN_RECORD_SUFFIX, refuse_existing_outputs
+from semantic3d.baselines.common.submission import (
+    RUN_RECORD_SUFFIX,
+    refuse_existing_outputs,
+    refuse_ground_truth_outputs,
+)
 from semantic3d.baselines.image.faces import labels_through_index
 from semantic3d.baselines.image.model import ImageModel
-from semantic3d.core.errors import Semantic3DError
+from semantic3d.core.errors import GroundTruthOutputError
 from semantic3d.viz.cubemap import FACE_NAMES
 from semantic3d.viz.cubemap_files import side_by_side, write_png
 from semantic3d.viz.station import StationSource, resolve_station
@@ -89,15 +93,18 @@ def predict_image_scan(
 
     Raises:
         OutputExistsError: an output exists and ``overwrite`` is False (checked first).
-        Semantic3DError: ``out_path`` is the scan's own ground truth.
+        GroundTruthOutputError: ``out_path`` is the scan's own ground truth (refused even
+            with ``overwrite``).
     """
     from semantic3d.io.formats import iter_points, sibling_labels_path
 
     points_path = Path(points_path)
     out = Path(out_path)
     truth = Path(labels_path) if labels_path is not None else sibling_labels_path(points_path)
-    if truth is not None and truth.resolve() == out.resolve():
-        raise Semantic3DError(
+    outputs = prediction_outputs(out, with_faces=write_faces)
+    refuse_ground_truth_outputs([points_path], outputs)
+    if truth is not None and truth.resolve() in {path.resolve() for path in outputs}:
+        raise GroundTruthOutputError(
             f"{out}: is the ground truth of {points_path.name}; expected another output path"
         )
     refuse_existing_outputs(prediction_outputs(out, with_faces=write_faces), overwrite=overwrite)
