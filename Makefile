@@ -15,7 +15,7 @@ $(BIN)/python:
 # plots, server; no torch, Dask or image stack); `make test` installs everything.
 $(VENV)/.demo-installed: pyproject.toml | $(BIN)/python
 	@echo "installing semantic3d with the demo's extras (las, ply, viz, sim, ml, server):" \
-	  "about 600 MB, a minute or two on a first run"
+	  "about 750 MB, a few minutes on a first run"
 	$(BIN)/python -m pip install --progress-bar on -e '.[demo]'
 	touch $@
 
