@@ -79,6 +79,29 @@ def test_boosted_beats_the_majority_class_on_another_scene(
         predict_image_scan(boosted, simulated_dir / "street2.txt", out_path=out)
 
 
+def test_every_long_stage_reports_and_stepwise_boosting_is_one_fit(
+    boosted: ImageModel, simulated_dir: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from semantic3d.baselines.image import segmenter
+
+    monkeypatch.setattr(segmenter, "_BOOSTING_STEP", 1000)  # one fit of every round
+    stages: dict[str, list[tuple[int, int]]] = {}
+    scans = find_labelled_scans(simulated_dir, names=["street1"])
+    once = train_image_model(
+        scans,
+        config=config_from_dict(TINY),
+        variant=ImageVariant.BOOSTED,
+        progress=lambda stage, done, total: stages.setdefault(stage, []).append((done, total)),
+    )
+    assert list(stages) == ["rendering", "descriptors", "words", "features", "boosting"]
+    assert stages["words"][-1][0] == stages["words"][-1][1] and stages["boosting"] == [(15, 15)]
+    rows = np.random.default_rng(0).random((500, once.segmenter.booster_.n_features_in_))
+    np.testing.assert_array_equal(  # the fixture's booster was fitted 10 rounds at a time
+        once.segmenter.booster_.predict_proba(rows),
+        boosted.segmenter.booster_.predict_proba(rows),
+    )
+
+
 def test_model_round_trip_predicts_the_same(
     boosted: ImageModel, simulated_dir: Path, tmp_path: Path
 ) -> None:

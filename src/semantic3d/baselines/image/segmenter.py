@@ -12,6 +12,7 @@ It is a scikit-learn-style estimator: ``fit`` returns self, fitted attributes en
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -32,6 +33,8 @@ from semantic3d.core.errors import require
 __all__ = ["BoostedSegmenter"]
 
 _BLOCK_PIXELS = 16_384
+_BOOSTING_STEP = 10
+"""Boosting rounds fitted between two progress reports."""
 
 
 class BoostedSegmenter:
@@ -88,6 +91,7 @@ class BoostedSegmenter:
             n_words=config.words.n_words,
             sample_pixels=config.words.sample_pixels,
             seed=config.seed,
+            progress=None if progress is None else partial(progress, "words"),
         )
         self.rectangles_ = RectangleFeatures.sample(
             self.vocabulary_,
@@ -128,8 +132,18 @@ class BoostedSegmenter:
             class_weight="balanced",
             early_stopping=False,
             random_state=config.seed,
+            warm_start=True,
         )
-        booster.fit(np.concatenate(rows_x), y)
+        x = np.concatenate(rows_x)
+        # Rounds are added _BOOSTING_STEP at a time (warm start) to report progress: without
+        # early stopping, and with a fixed seed for the binning, the trees are the same as
+        # those of one fit (tests/baselines/image).
+        total = config.boosting.max_iter
+        for rounds in range(min(_BOOSTING_STEP, total), total + _BOOSTING_STEP, _BOOSTING_STEP):
+            booster.set_params(max_iter=min(rounds, total))
+            booster.fit(x, y)
+            if progress is not None:
+                progress("boosting", booster.n_iter_, total)
         self.booster_: Any = booster
         self.classes_ = np.asarray(booster.classes_, np.uint8)
         self.n_training_pixels_ = int(y.size)

@@ -10,7 +10,7 @@ image, so every feature costs the same whatever the rectangle's size.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -52,15 +52,17 @@ class Vocabulary:
         n_words: int,
         sample_pixels: int,
         seed: int,
+        progress: Callable[[int, int], None] | None = None,
     ) -> Vocabulary:
-        """Cluster ``sample_pixels`` pixels (within ``masks``) of each kind into words."""
+        """Cluster ``sample_pixels`` pixels (within ``masks``) of each kind into words;
+        ``progress(kinds_done, n_kinds)`` after each kind."""
         cluster = require("sklearn.cluster", "image")
         rng = np.random.default_rng(seed)
         means: dict[str, NDArray[np.float32]] = {}
         scales: dict[str, NDArray[np.float32]] = {}
         fitted: dict[str, Any] = {}
         per_image = max(sample_pixels // max(len(descriptors), 1), 1)
-        for kind in CONTINUOUS_KINDS:
+        for number, kind in enumerate(CONTINUOUS_KINDS):
             rows = []
             for desc, mask in zip(descriptors, masks, strict=True):
                 values = desc.continuous[kind][mask]
@@ -76,6 +78,8 @@ class Vocabulary:
             )
             kmeans.fit((sample - mean) / scale)
             means[kind], scales[kind], fitted[kind] = mean, scale.astype(np.float32), kmeans
+            if progress is not None:
+                progress(number + 1, len(CONTINUOUS_KINDS))
         return cls(n_words, means, scales, fitted)
 
     def n_words_of(self, kind: str) -> int:
