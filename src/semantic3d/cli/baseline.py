@@ -9,7 +9,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-from enum import StrEnum
 from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -17,11 +16,18 @@ from typing import TYPE_CHECKING, Any
 import typer
 
 from semantic3d.cli import console as ui
+from semantic3d.cli.baseline_common import (
+    OVERWRITE_HELP,
+    SCANS_HELP,
+    ChallengeChoice,
+    print_runs,
+    scan_names,
+    scans_and_target,
+)
 from semantic3d.cli.cluster import open_cluster, scheduler_option, workers_option
 from semantic3d.cli.console import (
     MARKUP_MODE,
     escape,
-    fail,
     guarded,
     plural,
     progress_bar,
@@ -32,7 +38,6 @@ if TYPE_CHECKING:
     from semantic3d.baselines.common.prediction import Predictor
     from semantic3d.baselines.common.submission import ScanToLabel
     from semantic3d.baselines.covariance.config import CovarianceConfig
-    from semantic3d.baselines.covariance.predict import PredictionRunSet
 
 baseline_app = typer.Typer(
     rich_markup_mode=MARKUP_MODE,
@@ -49,22 +54,6 @@ baseline_app.add_typer(covariance_app, name="covariance")
 _CONFIG_HELP = (
     "TOML configuration with the sections features, forest, sampling, prediction, grid_search."
 )
-_SCANS_HELP = "Scan names (NAME of NAME.txt) to use, repeatable or comma-separated; default all."
-_OVERWRITE_HELP = "Replace outputs that already exist (refused otherwise)."
-
-#: Where ``predict`` writes when no --out is given (relative to the working directory).
-DEFAULT_PREDICTIONS = Path("predictions")
-
-
-class ChallengeChoice(StrEnum):
-    """Test challenges whose scans ``predict --data`` can label under official names."""
-
-    SEMANTIC_8 = "semantic-8"
-    REDUCED_8 = "reduced-8"
-
-
-def _scan_names(scans: list[str]) -> list[str]:
-    return [name.strip() for item in scans for name in item.split(",") if name.strip()]
 
 
 def _config(path: Path | None, seed: int | None) -> CovarianceConfig:
@@ -82,7 +71,7 @@ def _config(path: Path | None, seed: int | None) -> CovarianceConfig:
 def train(
     data: Path = typer.Option(..., "--data", help="Folder of NAME.txt + NAME.labels scans."),
     out: Path = typer.Option(..., "--out", help="Model file to write."),
-    scans: list[str] = typer.Option([], "--scans", help=_SCANS_HELP),
+    scans: list[str] = typer.Option([], "--scans", help=SCANS_HELP),
     config_path: Path | None = typer.Option(None, "--config", help=_CONFIG_HELP),
     seed: int | None = typer.Option(
         None, "--seed", help="Override the seed of the sampling section."
@@ -94,7 +83,7 @@ def train(
         "by scan, then fit it (as [grid_search] select_forest = true); the chosen parameters "
         "are recorded in the model file.",
     ),
-    overwrite: bool = typer.Option(False, "--overwrite", help=_OVERWRITE_HELP),
+    overwrite: bool = typer.Option(False, "--overwrite", help=OVERWRITE_HELP),
     workdir: Path | None = typer.Option(
         None, "--workdir", help="Scratch folder for tiles (with --scheduler: one the workers see)."
     ),
@@ -120,7 +109,7 @@ def train(
             config = dataclasses.replace(
                 config, grid_search=dataclasses.replace(config.grid_search, select_forest=True)
             )
-        labelled = find_labelled_scans(data, names=_scan_names(scans))
+        labelled = find_labelled_scans(data, names=scan_names(scans))
         with open_cluster(scheduler, workers) as cluster, progress_bar() as bar:
             task = bar.add_task("features of training points", total=len(labelled))
             hooks: dict[str, Any] = {}
@@ -179,7 +168,7 @@ def predict(
         "names (default: every NAME.txt, as NAME.labels).",
     ),
     workdir: Path | None = typer.Option(None, "--workdir", help="Scratch folder for tiles."),
-    overwrite: bool = typer.Option(False, "--overwrite", help=_OVERWRITE_HELP),
+    overwrite: bool = typer.Option(False, "--overwrite", help=OVERWRITE_HELP),
     parallel_scans: int | None = typer.Option(
         None,
         "--parallel-scans",
@@ -200,7 +189,7 @@ def predict(
     Existing outputs are refused unless --overwrite; Ctrl-C leaves only complete files.
     """
     with guarded():
-        scans, target = _scans_and_target(scan, data, out, challenge)
+        scans, target = scans_and_target(scan, data, out, challenge)
         _predict(
             scans,
             target,
@@ -211,31 +200,6 @@ def predict(
             cluster_options=(scheduler, workers),
             parallel_scans=parallel_scans,
         )
-
-
-def _scans_and_target(
-    scan: Path | None, data: Path | None, out: Path | None, challenge: ChallengeChoice | None
-) -> tuple[tuple[ScanToLabel, ...], Path]:
-    """What ``predict`` labels and the folder or zip it writes to."""
-    from semantic3d.baselines.common.submission import ScanToLabel, find_scans_to_label
-
-    target = out if out is not None else DEFAULT_PREDICTIONS
-    if data is not None:
-        if scan is not None:
-            raise fail("expected one SCAN argument or --data DIR, found both")
-        if target.suffix == ".labels":
-            raise fail(f"{target}: with --data, --out is a folder or a .zip archive")
-        challenge_name = None if challenge is None else challenge.value
-        return find_scans_to_label(data, challenge=challenge_name), target
-    if scan is None:
-        raise fail("expected one SCAN argument or --data DIR, found neither")
-    if challenge is not None:
-        raise fail("--challenge applies to --data DIR (a folder of the challenge's scans)")
-    if not scan.is_file():
-        raise fail(f"{scan}: expected a scan file (x y z intensity r g b lines), found none")
-    if target.suffix == ".labels":  # one scan into a named labels file
-        return (ScanToLabel(scan.stem, scan, target.name),), target.parent
-    return (ScanToLabel(scan.stem, scan, scan.stem + ".labels"),), target
 
 
 def _predict(
@@ -295,46 +259,19 @@ def _predict(
             parallel_scans=parallel_scans,
         )
         bar.update(task, completed=result.n_points, total=result.n_points)
-    _print_runs(result, zipped=is_zip_output(target), challenge=challenge)
-
-
-def _print_runs(result: PredictionRunSet, *, zipped: bool, challenge: str | None) -> None:
-    for run in result.runs:
-        ui.console.print(
-            f"{escape(Path(run.scan).name)}: {plural(run.n_points, 'point')} labelled in "
-            f"{run.runtime_s:.1f} s ({run.points_per_second:,.0f} points/s"
-            f"{', tiled' if run.tiled else ''}) -> {escape(run.labels_path)}",
-            highlight=False,
-            soft_wrap=True,
-        )
-    if len(result.runs) > 1 or zipped:
-        ui.console.print(
-            f"{plural(len(result.runs), 'scan')}, {plural(result.n_points, 'point')} in "
-            f"{result.runtime_s:.1f} s -> {escape(result.out)}",
-            highlight=False,
-            soft_wrap=True,
-        )
-    if zipped:
-        hardware = result.runs[0].hardware.describe() if result.runs else ""
-        ui.console.print(
-            "submit it with: semantic3d submit --server URL --token TOKEN "
-            f"--challenge {challenge or 'NAME'} --method NAME --runtime-s {result.runtime_s:.0f} "
-            f"--hardware {escape(repr(hardware))} {escape(result.out)}",
-            highlight=False,
-            soft_wrap=True,
-        )
+    print_runs(result, zipped=is_zip_output(target), challenge=challenge)
 
 
 @covariance_app.command()
 def cv(
     data: Path = typer.Option(..., "--data", help="Folder of NAME.txt + NAME.labels scans."),
-    scans: list[str] = typer.Option([], "--scans", help=_SCANS_HELP),
+    scans: list[str] = typer.Option([], "--scans", help=SCANS_HELP),
     config_path: Path | None = typer.Option(None, "--config", help=_CONFIG_HELP),
     seed: int | None = typer.Option(
         None, "--seed", help="Override the seed of the sampling section."
     ),
     out: Path | None = typer.Option(None, "--out", help="Write the scores as JSON here."),
-    overwrite: bool = typer.Option(False, "--overwrite", help=_OVERWRITE_HELP),
+    overwrite: bool = typer.Option(False, "--overwrite", help=OVERWRITE_HELP),
 ) -> None:
     """Grid search of forest parameters, cross-validated with folds grouped by scan."""
     with guarded():
@@ -350,7 +287,7 @@ def cv(
         )
 
         config = _config(config_path, seed)
-        labelled = find_labelled_scans(data, names=_scan_names(scans))
+        labelled = find_labelled_scans(data, names=scan_names(scans))
         with progress_bar() as bar:
             task = bar.add_task("features of training points", total=len(labelled))
             training = build_training_set(

@@ -8,13 +8,22 @@ from __future__ import annotations
 
 import dataclasses
 import json
-from enum import StrEnum
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import typer
 
 from semantic3d.cli import console as ui
+from semantic3d.cli.baseline_common import (
+    CHECKPOINT_SUFFIX,
+    OVERWRITE_HELP,
+    SCANS_HELP,
+    ChallengeChoice,
+    DeviceChoice,
+    print_runs,
+    scan_names,
+    scans_and_target,
+)
 from semantic3d.cli.cluster import open_cluster, scheduler_option, workers_option
 from semantic3d.cli.console import (
     MARKUP_MODE,
@@ -39,29 +48,7 @@ _CONFIG_HELP = (
     'TOML configuration (preset = "paper" | "cpu-short"; sections cubes, network, training, '
     "prediction). Default: the paper's values."
 )
-_SCANS_HELP = "Scan names (NAME of NAME.txt) to use, repeatable or comma-separated; default all."
-_OVERWRITE_HELP = "Replace outputs that already exist (refused otherwise)."
 _BATCHES_HELP = "Train this many mini-batches instead of the configuration's (a shortened run)."
-CHECKPOINT_SUFFIX = ".checkpoint"
-"""The checkpoint of ``train --out MODEL`` is ``MODEL.checkpoint``."""
-
-
-class DeviceChoice(StrEnum):
-    """Where the network runs."""
-
-    CPU = "cpu"
-    CUDA = "cuda"
-
-
-class ChallengeChoice(StrEnum):
-    """Test challenges whose scans ``predict --data`` can label under official names."""
-
-    SEMANTIC_8 = "semantic-8"
-    REDUCED_8 = "reduced-8"
-
-
-def _scan_names(scans: list[str]) -> list[str]:
-    return [name.strip() for item in scans for name in item.split(",") if name.strip()]
 
 
 def _config(path: Path | None, seed: int | None, batches: int | None) -> CnnConfig:
@@ -102,7 +89,7 @@ def _training_bar(bar: Any, task: Any) -> Any:
 def train(
     data: Path = typer.Option(..., "--data", help="Folder of labelled scans (any format)."),
     out: Path = typer.Option(..., "--out", help="Model file to write."),
-    scans: list[str] = typer.Option([], "--scans", help=_SCANS_HELP),
+    scans: list[str] = typer.Option([], "--scans", help=SCANS_HELP),
     config_path: Path | None = typer.Option(None, "--config", help=_CONFIG_HELP),
     batches: int | None = typer.Option(None, "--batches", min=1, help=_BATCHES_HELP),
     seed: int | None = typer.Option(None, "--seed", help="Override the training seed."),
@@ -111,7 +98,7 @@ def train(
         False, "--resume", help="Continue from OUT.checkpoint (written every checkpoint_every)."
     ),
     workdir: Path | None = typer.Option(None, "--workdir", help="Scratch folder for tiles."),
-    overwrite: bool = typer.Option(False, "--overwrite", help=_OVERWRITE_HELP),
+    overwrite: bool = typer.Option(False, "--overwrite", help=OVERWRITE_HELP),
 ) -> None:
     """Train DeepNet on labelled scans (class-balanced batches) and save the model.
 
@@ -130,7 +117,7 @@ def train(
         from semantic3d.baselines.common.scans import find_labelled_scans
 
         config = _config(config_path, seed, batches)
-        labelled = find_labelled_scans(data, names=_scan_names(scans))
+        labelled = find_labelled_scans(data, names=scan_names(scans))
         with progress_bar() as bar:
             task = bar.add_task("tiling the training scans", total=config.training.n_batches)
             model = train_cnn_model(
@@ -173,7 +160,7 @@ def predict(
     ),
     device: DeviceChoice = typer.Option(DeviceChoice.CPU, "--device", help="cpu or cuda."),
     workdir: Path | None = typer.Option(None, "--workdir", help="Scratch folder for tiles."),
-    overwrite: bool = typer.Option(False, "--overwrite", help=_OVERWRITE_HELP),
+    overwrite: bool = typer.Option(False, "--overwrite", help=OVERWRITE_HELP),
     scheduler: str | None = scheduler_option(),
     workers: int | None = workers_option(),
 ) -> None:
@@ -190,11 +177,8 @@ def predict(
             is_zip_output,
             refuse_unsafe_outputs,
         )
-        from semantic3d.cli.baseline import ChallengeChoice as CovarianceChallenge
-        from semantic3d.cli.baseline import _print_runs, _scans_and_target
 
-        chosen = None if challenge is None else CovarianceChallenge(challenge.value)
-        scans_to_label, target = _scans_and_target(scan, data, out, chosen)
+        scans_to_label, target = scans_and_target(scan, data, out, challenge)
         refuse_unsafe_outputs(target, scans_to_label, overwrite=overwrite)
         model = load_model(model_path, device=device.value)
         with open_cluster(scheduler, workers) as cluster, progress_bar() as bar:
@@ -223,7 +207,7 @@ def predict(
                 overwrite=overwrite,
             )
             bar.update(task, completed=result.n_points, total=result.n_points)
-        _print_runs(
+        print_runs(
             result,
             zipped=is_zip_output(target),
             challenge=None if challenge is None else challenge.value,
@@ -233,7 +217,7 @@ def predict(
 @cnn_app.command()
 def cv(
     data: Path = typer.Option(..., "--data", help="Folder of labelled scans."),
-    scans: list[str] = typer.Option([], "--scans", help=_SCANS_HELP),
+    scans: list[str] = typer.Option([], "--scans", help=SCANS_HELP),
     config_path: Path | None = typer.Option(None, "--config", help=_CONFIG_HELP),
     folds: int = typer.Option(5, "--folds", min=2, help="Folds, grouped by scan."),
     points_per_scan: int | None = typer.Option(
@@ -247,7 +231,7 @@ def cv(
     device: DeviceChoice = typer.Option(DeviceChoice.CPU, "--device", help="cpu or cuda."),
     workdir: Path | None = typer.Option(None, "--workdir", help="Scratch folder for tiles."),
     out: Path | None = typer.Option(None, "--out", help="Write the scores as JSON here."),
-    overwrite: bool = typer.Option(False, "--overwrite", help=_OVERWRITE_HELP),
+    overwrite: bool = typer.Option(False, "--overwrite", help=OVERWRITE_HELP),
 ) -> None:
     """Cross-validate: train on all folds but one, label the held-out scans, score them."""
     with guarded():
@@ -259,7 +243,7 @@ def cv(
         from semantic3d.baselines.common.submission import write_atomic_text
 
         config = _config(config_path, seed, batches)
-        labelled = find_labelled_scans(data, names=_scan_names(scans))
+        labelled = find_labelled_scans(data, names=scan_names(scans))
         scan_folds([s.name for s in labelled], folds)  # refuse a bad fold count before work
         with progress_bar() as bar:
             task = bar.add_task("fold 1", total=config.training.n_batches)

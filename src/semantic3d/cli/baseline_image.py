@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING
 import typer
 
 from semantic3d.cli import console as ui
+from semantic3d.cli.baseline_common import OVERWRITE_HELP, scan_names
 from semantic3d.cli.console import (
     MARKUP_MODE,
     escape,
@@ -33,18 +34,12 @@ image_app = typer.Typer(
     no_args_is_help=True,
 )
 
-_OVERWRITE_HELP = "Replace outputs that already exist (refused otherwise)."
-
 
 class VariantChoice(StrEnum):
     """Segmenters ``train`` can fit."""
 
     BOOSTED = "boosted"
     UNET = "unet"
-
-
-def _scan_names(scans: list[str]) -> list[str]:
-    return [name.strip() for item in scans for name in item.split(",") if name.strip()]
 
 
 @image_app.command()
@@ -62,7 +57,7 @@ def train(
     ),
     preset: str | None = typer.Option(None, "--preset", help="paper or small (without --config)."),
     seed: int | None = typer.Option(None, "--seed", help="Override the configuration's seed."),
-    overwrite: bool = typer.Option(False, "--overwrite", help=_OVERWRITE_HELP),
+    overwrite: bool = typer.Option(False, "--overwrite", help=OVERWRITE_HELP),
 ) -> None:
     """Render the labelled scans' cube maps from their stations and train a segmenter."""
     with guarded():
@@ -77,7 +72,7 @@ def train(
             raise fail("expected --config or --preset, found both")
         config = load_config(config_path) if config_path else preset_config(preset or "paper")
         config = with_seed(config, seed)
-        labelled = find_labelled_scans(data, names=_scan_names(scans))
+        labelled = find_labelled_scans(data, names=scan_names(scans))
         with progress_bar() as bar:
             task = bar.add_task("rendering", total=len(labelled))
 
@@ -112,7 +107,7 @@ def predict(
     ),
     no_faces: bool = typer.Option(False, "--no-faces", help="Skip the face pictures."),
     workdir: Path | None = typer.Option(None, "--workdir", help="Scratch folder."),
-    overwrite: bool = typer.Option(False, "--overwrite", help=_OVERWRITE_HELP),
+    overwrite: bool = typer.Option(False, "--overwrite", help=OVERWRITE_HELP),
 ) -> None:
     """Label scans: NAME.labels + run record, and NAME.faces/ (colour | truth | prediction)."""
     with guarded():
