@@ -214,7 +214,7 @@ def main() -> None:
                 out = folder / f"pred_{variant}" / f"{scan_.name}.labels"
                 result, w, c, _ = timed(
                     lambda s=scan_, o=out, m=model: predict_image_scan(
-                        m, s.points_path, out_path=o, write_faces=False
+                        m, s.points_path, out_path=o
                     )
                 )
                 pred_wall, pred_cpu = pred_wall + w, pred_cpu + c

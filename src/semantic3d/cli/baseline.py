@@ -20,7 +20,11 @@ from semantic3d.cli.baseline_common import (
     OVERWRITE_HELP,
     SCANS_HELP,
     ChallengeChoice,
+    challenge_option,
+    data_option,
+    out_option,
     print_runs,
+    scan_argument,
     scan_names,
     scans_and_target,
 )
@@ -147,26 +151,11 @@ def train(
 
 @covariance_app.command()
 def predict(
-    scan: Path | None = typer.Argument(
-        None, help="One scan to label (x y z intensity r g b lines); or use --data."
-    ),
+    scan: Path | None = scan_argument(),
     model_path: Path = typer.Option(..., "--model", help="Model file from `train`."),
-    data: Path | None = typer.Option(
-        None, "--data", file_okay=False, help="Label every scan of this folder (NAME.txt)."
-    ),
-    out: Path | None = typer.Option(
-        None,
-        "--out",
-        help="A folder (default ./predictions), a zip archive ready for `submit` (ends in "
-        ".zip) or, for one scan, a .labels file.",
-    ),
-    challenge: ChallengeChoice | None = typer.Option(
-        None,
-        "--challenge",
-        "-c",
-        help="With --data: label the challenge's scans under their official submission "
-        "names (default: every NAME.txt, as NAME.labels).",
-    ),
+    data: Path | None = data_option(),
+    out: Path | None = out_option(),
+    challenge: ChallengeChoice | None = challenge_option(),
     workdir: Path | None = typer.Option(None, "--workdir", help="Scratch folder for tiles."),
     overwrite: bool = typer.Option(False, "--overwrite", help=OVERWRITE_HELP),
     parallel_scans: int | None = typer.Option(

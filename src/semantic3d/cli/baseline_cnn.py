@@ -20,7 +20,11 @@ from semantic3d.cli.baseline_common import (
     SCANS_HELP,
     ChallengeChoice,
     DeviceChoice,
+    challenge_option,
+    data_option,
+    out_option,
     print_runs,
+    scan_argument,
     scan_names,
     scans_and_target,
 )
@@ -141,23 +145,11 @@ def train(
 
 @cnn_app.command()
 def predict(
-    scan: Path | None = typer.Argument(None, help="One scan to label (any format); or use --data."),
+    scan: Path | None = scan_argument(),
     model_path: Path = typer.Option(..., "--model", help="Model file from `train`."),
-    data: Path | None = typer.Option(
-        None, "--data", file_okay=False, help="Label every scan of this folder (NAME.txt)."
-    ),
-    out: Path | None = typer.Option(
-        None,
-        "--out",
-        help="A folder (default ./predictions), a zip archive ready for `submit` (ends in "
-        ".zip) or, for one scan, a .labels file.",
-    ),
-    challenge: ChallengeChoice | None = typer.Option(
-        None,
-        "--challenge",
-        "-c",
-        help="With --data: label the challenge's scans under their official submission names.",
-    ),
+    data: Path | None = data_option(),
+    out: Path | None = out_option(),
+    challenge: ChallengeChoice | None = challenge_option(),
     device: DeviceChoice = typer.Option(DeviceChoice.CPU, "--device", help="cpu or cuda."),
     workdir: Path | None = typer.Option(None, "--workdir", help="Scratch folder for tiles."),
     overwrite: bool = typer.Option(False, "--overwrite", help=OVERWRITE_HELP),

@@ -11,7 +11,9 @@ from __future__ import annotations
 
 from enum import StrEnum
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
+
+import typer
 
 from semantic3d.cli import console as ui
 from semantic3d.cli.console import escape, fail, plural
@@ -27,7 +29,11 @@ __all__ = [
     "SCANS_HELP",
     "ChallengeChoice",
     "DeviceChoice",
+    "challenge_option",
+    "data_option",
+    "out_option",
     "print_runs",
+    "scan_argument",
     "scan_names",
     "scans_and_target",
 ]
@@ -54,6 +60,39 @@ class DeviceChoice(StrEnum):
 
     CPU = "cpu"
     CUDA = "cuda"
+
+
+def scan_argument() -> Any:
+    """``predict``'s optional SCAN argument (one scan; or ``--data``)."""
+    return typer.Argument(None, help="One scan to label (any format); or use --data.")
+
+
+def data_option() -> Any:
+    """``predict``'s ``--data DIR``: every scan of a folder."""
+    return typer.Option(
+        None, "--data", file_okay=False, help="Label every scan of this folder (NAME.txt)."
+    )
+
+
+def out_option() -> Any:
+    """``predict``'s ``--out``: a folder, a zip, or for one scan a ``.labels`` file."""
+    return typer.Option(
+        None,
+        "--out",
+        help="A folder (default ./predictions), a zip archive ready for `submit` (ends in "
+        ".zip) or, for one scan, a .labels file.",
+    )
+
+
+def challenge_option() -> Any:
+    """``predict``'s ``--challenge``: the challenge's scans under their official names."""
+    return typer.Option(
+        None,
+        "--challenge",
+        "-c",
+        help="With --data: label the challenge's scans under their official submission "
+        "names (default: every NAME.txt, as NAME.labels).",
+    )
 
 
 def scan_names(scans: list[str]) -> list[str]:

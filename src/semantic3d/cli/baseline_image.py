@@ -9,12 +9,21 @@ from __future__ import annotations
 
 from enum import StrEnum
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import typer
 
 from semantic3d.cli import console as ui
-from semantic3d.cli.baseline_common import OVERWRITE_HELP, scan_names
+from semantic3d.cli.baseline_common import (
+    OVERWRITE_HELP,
+    ChallengeChoice,
+    challenge_option,
+    data_option,
+    out_option,
+    print_runs,
+    scan_argument,
+    scan_names,
+    scans_and_target,
+)
 from semantic3d.cli.console import (
     MARKUP_MODE,
     escape,
@@ -24,9 +33,6 @@ from semantic3d.cli.console import (
     progress_bar,
     refuse_existing,
 )
-
-if TYPE_CHECKING:
-    from rich.progress import Progress, TaskID
 
 image_app = typer.Typer(
     rich_markup_mode=MARKUP_MODE,
@@ -94,64 +100,78 @@ def train(
 
 @image_app.command()
 def predict(
-    scans: list[Path] = typer.Argument(..., help="Scans to label (any format)."),
+    scan: Path | None = scan_argument(),
     model_path: Path = typer.Option(..., "--model", help="Model file from `train`."),
-    out: Path = typer.Option(
-        Path("predictions"), "--out", help="Folder for NAME.labels, NAME.labels.json, NAME.faces/."
-    ),
+    data: Path | None = data_option(),
+    out: Path | None = out_option(),
+    challenge: ChallengeChoice | None = challenge_option(),
     station: str | None = typer.Option(
         None,
         "--station",
         help="Scanner position x,y,z (one scan only); default the simulator's sidecar, "
         "else estimated.",
     ),
-    no_faces: bool = typer.Option(False, "--no-faces", help="Skip the face pictures."),
+    faces: Path | None = typer.Option(
+        None,
+        "--faces",
+        file_okay=False,
+        help="Also write each scan's face pictures (colour | truth | prediction) into FACES/NAME/.",
+    ),
     workdir: Path | None = typer.Option(None, "--workdir", help="Scratch folder."),
     overwrite: bool = typer.Option(False, "--overwrite", help=OVERWRITE_HELP),
 ) -> None:
-    """Label scans: NAME.labels + run record, and NAME.faces/ (colour | truth | prediction)."""
+    """Label scans with a trained model: one SCAN, or every scan of --data.
+
+    Writes NAME.labels and a NAME.labels.json run record per scan into ./predictions (or
+    --out: a folder, a .zip ready for `submit`, or for one scan a .labels file), as every
+    baseline's predict does; the face pictures only with --faces.
+    """
     with guarded():
         from semantic3d.viz.station import parse_station
 
         position = parse_station(station) if station is not None else None
-        if position is not None and len(scans) > 1:
-            raise fail(f"--station applies to one scan, found {len(scans)}")
-        missing = [scan for scan in scans if not scan.exists()]
-        if missing:
-            raise fail(f"{missing[0]}: expected a scan file, found none")
-        from semantic3d.baselines.common.submission import refuse_existing_outputs
+        scans_to_label, target = scans_and_target(scan, data, out, challenge)
+        if position is not None and len(scans_to_label) > 1:
+            raise fail(f"--station applies to one scan, found {len(scans_to_label)}")
+        from semantic3d.baselines.common.submission import is_zip_output, refuse_unsafe_outputs
         from semantic3d.baselines.image.persistence import load_model
-        from semantic3d.baselines.image.predict import predict_image_scan, prediction_outputs
+        from semantic3d.baselines.image.predict import predict_image_scans
 
-        targets = [out / f"{scan.stem}.labels" for scan in scans]
-        refuse_existing_outputs(
-            [p for t in targets for p in prediction_outputs(t, with_faces=not no_faces)],
-            overwrite=overwrite,
-        )
+        refuse_unsafe_outputs(target, scans_to_label, overwrite=overwrite)
         model = load_model(model_path)
-        for scan, target in zip(scans, targets, strict=True):
-            with progress_bar() as bar:
-                task = bar.add_task(f"labelling {scan.name}", total=None)
+        with progress_bar() as bar:
+            task = bar.add_task(f"labelling {plural(len(scans_to_label), 'scan')}", total=None)
 
-                def update(done: int, total: int, task: TaskID = task, bar: Progress = bar) -> None:
-                    bar.update(task, completed=done, total=total or None)
-
-                result = predict_image_scan(
-                    model,
-                    scan,
-                    out_path=target,
-                    station=position,
-                    write_faces=not no_faces,
-                    workdir=workdir,
-                    progress=update,
-                    overwrite=overwrite,
+            def update(index: int, done: int, total: int) -> None:
+                bar.update(
+                    task,
+                    description=f"labelling {scans_to_label[index].name} "
+                    f"({index + 1}/{len(scans_to_label)})",
+                    completed=done,
+                    total=total or None,
                 )
-            x, y, z = result.station.position
+
+            result = predict_image_scans(
+                model,
+                scans_to_label,
+                target,
+                station=position,
+                faces_dir=faces,
+                workdir=workdir,
+                progress=update,
+                overwrite=overwrite,
+            )
+        for scanned in result.scans:
+            x, y, z = scanned.station.position
+            where = f"; faces in {scanned.faces_dir}" if scanned.faces_dir is not None else ""
             ui.console.print(
-                f"{escape(scan.name)}: {plural(result.run.n_points, 'point')} in "
-                f"{result.run.runtime_s:.1f} s ({result.run.points_per_second:,.0f} points/s), "
-                f"station ({x:.2f}, {y:.2f}, {z:.2f}) {escape(f'[{result.station.source}]')} "
-                f"-> {escape(result.run.labels_path)}",
+                f"{escape(Path(scanned.run.scan).name)}: station ({x:.2f}, {y:.2f}, {z:.2f}) "
+                f"{escape(f'[{scanned.station.source}]')}{escape(where)}",
                 highlight=False,
                 soft_wrap=True,
             )
+        print_runs(
+            result.runs,
+            zipped=is_zip_output(target),
+            challenge=None if challenge is None else challenge.value,
+        )

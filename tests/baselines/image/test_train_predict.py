@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -63,7 +64,9 @@ def test_boosted_beats_the_majority_class_on_another_scene(
     boosted: ImageModel, simulated_dir: Path, tmp_path: Path
 ) -> None:
     out = tmp_path / "street2.labels"
-    result = predict_image_scan(boosted, simulated_dir / "street2.txt", out_path=out)
+    result = predict_image_scan(
+        boosted, simulated_dir / "street2.txt", out_path=out, faces_dir=tmp_path / "faces"
+    )
     truth = read_labels(simulated_dir / "street2.labels")
     predicted = read_labels(out)
     assert predicted.size == truth.size
@@ -73,7 +76,8 @@ def test_boosted_beats_the_majority_class_on_another_scene(
     assert result.station.source == "estimated"
     record = json.loads(out.with_name("street2.labels.json").read_text())
     assert record["n_points"] == truth.size and record["training_scans"] == ["street1"]
-    picture = np.asarray(Image.open(result.faces_dir / "px.png"))  # type: ignore[operator]
+    assert result.faces_dir == tmp_path / "faces" / "street2"
+    picture = np.asarray(Image.open(result.faces_dir / "px.png"))
     assert picture.shape == (64, 3 * 64 + 2 * 4, 3)  # colour | truth | prediction
     with pytest.raises(OutputExistsError, match="already exists"):
         predict_image_scan(boosted, simulated_dir / "street2.txt", out_path=out)
@@ -115,7 +119,6 @@ def test_model_round_trip_predicts_the_same(
             simulated_dir / "street1.txt",
             out_path=tmp_path / f"{name}.labels",
             station=station,
-            write_faces=False,
         )
     np.testing.assert_array_equal(
         read_labels(tmp_path / "a.labels"), read_labels(tmp_path / "b.labels")
@@ -135,9 +138,7 @@ def test_unet_variant_trains_and_round_trips(simulated_dir: Path, tmp_path: Path
     assert len(losses) == 2 and all(np.isfinite(losses)) and min(losses) > 0
     cubemap, _ = render_scan(scans[0], config=model.config)
     np.testing.assert_array_equal(model.segment_cubemap(cubemap), loaded.segment_cubemap(cubemap))
-    predict_image_scan(
-        loaded, simulated_dir / "street2.txt", out_path=tmp_path / "u.labels", write_faces=False
-    )
+    predict_image_scan(loaded, simulated_dir / "street2.txt", out_path=tmp_path / "u.labels")
     predicted = read_labels(tmp_path / "u.labels")
     assert predicted.size == read_labels(simulated_dir / "street2.labels").size
     assert set(predicted.tolist()) <= set(model.label_values)
@@ -188,12 +189,54 @@ def test_cli_train_predict_and_errors(
     predict = ["baseline", "image", "predict", str(scan), "--model", str(model), "--out", str(out)]
     wrong = runner.invoke(app, [*predict, "--station", "1,2"])
     assert wrong.exit_code == 2 and "station: expected x,y,z" in wrong.output
-    done = runner.invoke(app, [*predict, "--station", "6,0,1.8", "--no-faces"])
+    done = runner.invoke(app, [*predict, "--station", "6,0,1.8"])
     assert done.exit_code == 0, done.output
     assert "[option]" in done.output
+    assert sorted(p.name for p in out.iterdir()) == ["street2.labels", "street2.labels.json"]
     assert (
         read_labels(out / "street2.labels").size
         == read_labels(simulated_dir / "street2.labels").size
     )
-    again = runner.invoke(app, [*predict, "--no-faces"])
+    again = runner.invoke(app, predict)
     assert again.exit_code == 2 and "already exists" in again.output
+
+
+def test_cli_predict_takes_every_baseline_s_out_forms(
+    app: typer.Typer, boosted: ImageModel, simulated_dir: Path, tmp_path: Path
+) -> None:
+    from semantic3d.cli.app import app as semantic3d
+
+    model = save_model(boosted, tmp_path / "m.s3d")
+    predict = ["baseline", "image", "predict", "--model", str(model)]
+    # one scan into a named .labels file (not a folder of that name), faces only when asked
+    named = tmp_path / "pred" / "street2.labels"
+    faces = tmp_path / "faces"
+    done = runner.invoke(
+        app,
+        [*predict, str(simulated_dir / "street2.txt"), "--out", str(named), "--faces", str(faces)],
+    )
+    assert done.exit_code == 0, done.output
+    assert named.is_file() and (named.parent / "street2.labels.json").is_file()
+    assert sorted(p.name for p in named.parent.iterdir()) == [
+        "street2.labels",
+        "street2.labels.json",
+    ]
+    assert len(list((faces / "street2").glob("*.png"))) == 6
+    data = tmp_path / "data"
+    data.mkdir()
+    for suffix in (".txt", ".labels"):
+        (data / f"street2{suffix}").symlink_to(simulated_dir / f"street2{suffix}")
+    evaluated = runner.invoke(
+        semantic3d, ["evaluate", "--gt", str(data), "--pred", str(named.parent)]
+    )
+    assert evaluated.exit_code == 0, evaluated.output
+    # every scan of a folder into a zip ready to submit
+    archive = tmp_path / "submission.zip"
+    zipped = runner.invoke(app, [*predict, "--data", str(data), "--out", str(archive)])
+    assert zipped.exit_code == 0, zipped.output
+    with zipfile.ZipFile(archive) as members:
+        assert members.namelist() == ["street2.labels"]
+    assert (tmp_path / "submission.zip.json").is_file() and "submit" in zipped.output
+    # never onto the scans' own ground truth
+    refused = runner.invoke(app, [*predict, "--data", str(data), "--out", str(data), "--overwrite"])
+    assert refused.exit_code == 2 and "is the ground truth of the scan" in refused.output

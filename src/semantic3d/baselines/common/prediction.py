@@ -52,6 +52,7 @@ __all__ = [
     "parallel_scans_limit",
     "predict_scan",
     "predict_scans",
+    "write_prediction_set",
 ]
 
 Progress = Callable[[int, int], None]
@@ -264,14 +265,32 @@ def predict_scans(
                 )
             )
 
+    return write_prediction_set(out, scans, predict_all, started=started, runs=runs)
+
+
+def write_prediction_set(
+    out: Path,
+    scans: Sequence[ScanToLabel],
+    label_all: Callable[[Path], object],
+    *,
+    started: float,
+    runs: list[PredictionRun],
+) -> PredictionRunSet:
+    """Run ``label_all(folder)``, which labels every scan into ``folder / scan.output_name``
+    and appends each scan's run to ``runs``, so that ``out`` ends as a folder or a zip.
+
+    A folder is written in place (each file staged by its writer). For a zip the scans are
+    labelled into a hidden scratch folder, zipped into ``out`` (complete or absent) and the
+    runs recorded in ``ARCHIVE.zip.json``; the runs' ``labels_path`` name the members.
+    """
     if not is_zip_output(out):
         out.mkdir(parents=True, exist_ok=True)
-        predict_all(out)
+        label_all(out)
         return PredictionRunSet(str(out), tuple(runs), time.perf_counter() - started)
     with staged_folder(out) as folder:
-        predict_all(folder)
+        label_all(folder)
         write_submission_zip(out, [(scan.output_name, folder / scan.output_name) for scan in scans])
-    runs = [
+    runs[:] = [
         dataclasses.replace(run, labels_path=f"{out}:{scan.output_name}")
         for run, scan in zip(runs, scans, strict=True)
     ]

@@ -3,23 +3,35 @@
 :func:`predict_image_scan` resolves the scan's station, runs the shared streaming loop
 (:func:`~semantic3d.baselines.common.predict_scan`: any format, labels in the input's point
 order, a run record beside them, nothing replaced unless asked) with the model bound to
-that station, and writes ``NAME.faces/<face>.png`` beside the labels: colour, ground truth
+that station, and when asked writes ``FACES_DIR/NAME/<face>.png``: colour, ground truth
 (when the scan has labels) and prediction side by side, as in the paper's figure.
+:func:`predict_image_scans` labels many scans into a folder or a submission zip, as every
+baseline's ``predict`` does.
 """
 
 from __future__ import annotations
 
+import time
+from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 import numpy as np
 
-from semantic3d.baselines.common.prediction import Progress, predict_scan
-from semantic3d.baselines.common.run import PredictionRun
+from semantic3d.baselines.common.prediction import (
+    Progress,
+    RunProgress,
+    predict_scan,
+    write_prediction_set,
+)
+from semantic3d.baselines.common.run import PredictionRun, PredictionRunSet
 from semantic3d.baselines.common.submission import (
     RUN_RECORD_SUFFIX,
+    ScanToLabel,
     refuse_existing_outputs,
     refuse_ground_truth_outputs,
+    refuse_unsafe_outputs,
 )
 from semantic3d.baselines.image.faces import labels_through_index
 from semantic3d.baselines.image.model import ImageModel
@@ -28,7 +40,14 @@ from semantic3d.viz.cubemap import FACE_NAMES
 from semantic3d.viz.cubemap_files import side_by_side, write_png
 from semantic3d.viz.station import StationSource, resolve_station
 
-__all__ = ["ImagePrediction", "faces_folder", "predict_image_scan", "prediction_outputs"]
+__all__ = [
+    "ImagePrediction",
+    "ImagePredictionSet",
+    "faces_folder",
+    "predict_image_scan",
+    "predict_image_scans",
+    "prediction_outputs",
+]
 
 Station = tuple[float, float, float]
 
@@ -50,19 +69,87 @@ class ImagePrediction:
     coverage: float
 
 
-def faces_folder(out_path: str | Path) -> Path:
-    """Where the face pictures of ``NAME.labels`` go: ``NAME.faces`` beside it."""
-    out = Path(out_path)
-    return out.with_name(out.stem + ".faces")
+def faces_folder(faces_dir: str | Path, points_path: str | Path) -> Path:
+    """Where the face pictures of a scan go: ``FACES_DIR/NAME`` for the scan ``NAME.txt``."""
+    return Path(faces_dir) / Path(points_path).stem
 
 
-def prediction_outputs(out_path: str | Path, *, with_faces: bool = True) -> list[Path]:
-    """Every file :func:`predict_image_scan` writes for ``out_path``."""
+def prediction_outputs(out_path: str | Path, *, faces: Path | None = None) -> list[Path]:
+    """Every file :func:`predict_image_scan` writes for ``out_path`` (and, with ``faces``,
+    the scan's face folder)."""
     out = Path(out_path)
     paths = [out, out.with_name(out.name + RUN_RECORD_SUFFIX)]
-    if with_faces:
-        paths += [faces_folder(out) / f"{face}.png" for face in FACE_NAMES]
+    if faces is not None:
+        paths += [faces / f"{face}.png" for face in FACE_NAMES]
     return paths
+
+
+@dataclass(frozen=True, slots=True)
+class ImagePredictionSet:
+    """What labelling many scans produced: the runs (folder or zip) and each scan's result."""
+
+    runs: PredictionRunSet
+    scans: tuple[ImagePrediction, ...]
+
+
+def predict_image_scans(
+    model: ImageModel,
+    scans: Sequence[ScanToLabel],
+    out: str | Path,
+    *,
+    station: Station | None = None,
+    faces_dir: str | Path | None = None,
+    workdir: str | Path | None = None,
+    progress: RunProgress | None = None,
+    overwrite: bool = False,
+) -> ImagePredictionSet:
+    """Label ``scans`` into a folder, or a zip archive when ``out`` ends in .zip, as every
+    baseline does (:func:`~semantic3d.baselines.common.prediction.predict_scans`), each
+    from its own station; with ``faces_dir``, each scan's face pictures go to
+    ``FACES_DIR/NAME/``.
+
+    Raises:
+        GroundTruthOutputError: an output is a scan's ground truth (even with overwrite).
+        OutputExistsError: an output exists and ``overwrite`` is False (checked first).
+        ValueError: ``station`` given for more than one scan.
+    """
+    if station is not None and len(scans) > 1:
+        raise ValueError(f"station: applies to one scan, found {len(scans)}")
+    started = time.perf_counter()
+    out = Path(out)
+    refuse_unsafe_outputs(out, scans, overwrite=overwrite)
+    faces = None if faces_dir is None else Path(faces_dir)
+    if faces is not None:
+        pictures = [
+            faces_folder(faces, scan.points_path) / f"{face}.png"
+            for scan in scans
+            for face in FACE_NAMES
+        ]
+        refuse_existing_outputs(pictures, overwrite=overwrite)
+    runs: list[PredictionRun] = []
+    results: list[ImagePrediction] = []
+
+    def label_all(folder: Path) -> None:
+        for index, scan in enumerate(scans):
+            result = predict_image_scan(
+                model,
+                scan.points_path,
+                out_path=folder / scan.output_name,
+                station=station,
+                faces_dir=faces,
+                workdir=workdir,
+                progress=None if progress is None else partial(_scan_progress, progress, index),
+                overwrite=overwrite or folder != out,
+            )
+            runs.append(result.run)
+            results.append(result)
+
+    written = write_prediction_set(out, scans, label_all, started=started, runs=runs)
+    return ImagePredictionSet(written, tuple(results))
+
+
+def _scan_progress(progress: RunProgress, index: int, done: int, total: int) -> None:
+    progress(index, done, total)
 
 
 def predict_image_scan(
@@ -72,7 +159,7 @@ def predict_image_scan(
     out_path: str | Path,
     station: Station | None = None,
     labels_path: str | Path | None = None,
-    write_faces: bool = True,
+    faces_dir: str | Path | None = None,
     workdir: str | Path | None = None,
     progress: Progress | None = None,
     overwrite: bool = False,
@@ -86,7 +173,8 @@ def predict_image_scan(
         station: the scanner position; default the simulator's sidecar, else estimated.
         labels_path: ground truth for the pictures (default the ``.labels`` beside an
             ASCII scan, or the labels in the file).
-        write_faces: write ``NAME.faces/``.
+        faces_dir: write the face pictures (colour | truth | prediction) into
+            ``FACES_DIR/NAME/``; none by default.
         workdir: scratch folder.
         progress: called with points labelled so far.
         overwrite: replace existing outputs.
@@ -101,15 +189,16 @@ def predict_image_scan(
     points_path = Path(points_path)
     out = Path(out_path)
     truth = Path(labels_path) if labels_path is not None else sibling_labels_path(points_path)
-    outputs = prediction_outputs(out, with_faces=write_faces)
+    folder = None if faces_dir is None else faces_folder(faces_dir, points_path)
+    outputs = prediction_outputs(out, faces=folder)
     refuse_ground_truth_outputs([points_path], outputs)
     if truth is not None and truth.resolve() in {path.resolve() for path in outputs}:
         raise GroundTruthOutputError(
             f"{out}: is the ground truth of {points_path.name}; expected another output path"
         )
-    refuse_existing_outputs(prediction_outputs(out, with_faces=write_faces), overwrite=overwrite)
+    refuse_existing_outputs(outputs, overwrite=overwrite)
     source = resolve_station(points_path, station=station)
-    predictor = model.for_station(source.position, keep_cubemap=True)
+    predictor = model.for_station(source.position, keep_cubemap=folder is not None)
     run = predict_scan(
         predictor,
         points_path,
@@ -120,7 +209,7 @@ def predict_image_scan(
     )
     cubemap, predicted = predictor.cubemap, predictor.predicted_faces
     coverage = cubemap.coverage() if cubemap is not None else 0.0
-    if not write_faces or cubemap is None or predicted is None:
+    if folder is None or cubemap is None or predicted is None:
         return ImagePrediction(run, source, None, coverage)
     images = [cubemap.rgb]
     chunk_size = model.config.faces.chunk_size
@@ -141,7 +230,6 @@ def predict_image_scan(
                 cubemap.label_image(labels_through_index(cubemap.point_index, label_chunks))
             )
     images.append(cubemap.label_image(predicted))
-    folder = faces_folder(out)
     folder.mkdir(parents=True, exist_ok=True)
     for number, face in enumerate(FACE_NAMES):
         write_png(folder / f"{face}.png", side_by_side(*(np.asarray(i[number]) for i in images)))
