@@ -213,9 +213,7 @@ def main() -> None:
             for scan_ in test:
                 out = folder / f"pred_{variant}" / f"{scan_.name}.labels"
                 result, w, c, _ = timed(
-                    lambda s=scan_, o=out, m=model: predict_image_scan(
-                        m, s.points_path, out_path=o
-                    )
+                    lambda s=scan_, o=out, m=model: predict_image_scan(m, s.points_path, out_path=o)
                 )
                 pred_wall, pred_cpu = pred_wall + w, pred_cpu + c
                 n_points += result.run.n_points
