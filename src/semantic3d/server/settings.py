@@ -135,6 +135,11 @@ class Settings(BaseSettings):
         return self.data_dir / "submissions"
 
     @property
+    def orphaned_dir(self) -> Path:
+        """Stored files that no submission or upload names, set aside at start-up."""
+        return self.data_dir / "orphaned"
+
+    @property
     def ground_truth_dir(self) -> Path:
         """Hidden ground truth, one folder per challenge."""
         return self.data_dir / "ground-truth"
