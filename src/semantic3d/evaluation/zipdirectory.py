@@ -74,7 +74,7 @@ def check_zip_directory(path: Path, *, max_members: int, max_directory_bytes: in
 def _check(handle: BinaryIO, *, max_members: int, max_directory_bytes: int) -> None:
     size = handle.seek(0, os.SEEK_END)
     record, record_at = _end_record(handle, size)
-    (_, disk, directory_disk, n_here, n_entries, directory_size, directory_offset, _) = record
+    disk, directory_disk, n_here, n_entries, directory_size, directory_offset = record[:6]
     directory_end = record_at
     zip64 = _zip64_record(handle, record_at)
     if zip64 is not None:
@@ -113,21 +113,22 @@ def _check(handle: BinaryIO, *, max_members: int, max_directory_bytes: int) -> N
         )
 
 
-def _end_record(handle: BinaryIO, size: int) -> tuple[tuple[int | bytes, ...], int]:
-    """The end record as ``zipfile._EndRecData`` finds it, and where it starts."""
+def _end_record(handle: BinaryIO, size: int) -> tuple[tuple[int, ...], int]:
+    """The end record's fields (after its signature) as ``zipfile._EndRecData`` finds it,
+    and where it starts."""
     if size >= _EOCD.size:
         handle.seek(size - _EOCD.size)
         data = handle.read(_EOCD.size)
         if data[:4] == _EOCD_SIGNATURE and data[-2:] == b"\x00\x00":
-            return _EOCD.unpack(data), size - _EOCD.size
+            return _EOCD.unpack(data)[1:], size - _EOCD.size
     search_from = max(size - _MAX_COMMENT - 1 - _EOCD.size, 0)
     handle.seek(search_from)
     data = handle.read()
     at = data.rfind(_EOCD_SIGNATURE)
     if at < 0 or len(data) - at < _EOCD.size:
         raise _RefusedError(_corrupt("no end-of-central-directory record"))
-    record = _EOCD.unpack_from(data, at)
-    comment_size = int(record[7])
+    record = _EOCD.unpack_from(data, at)[1:]
+    comment_size = record[6]
     after = len(data) - at - _EOCD.size
     if comment_size != after:
         raise _RefusedError(
