@@ -92,13 +92,31 @@ def raise_open_file_limit() -> int:
 def connection_cap(max_connections: int, open_files: int) -> int:
     """``max_connections``, lowered to keep descriptors free under the open-file limit.
 
+    Half of what is left after the reserve: the other half is for connections the kernel
+    has queued, which the server accepts in batches before closing those over the cap.
+
     >>> connection_cap(1000, 1024), connection_cap(1000, 65536), connection_cap(1000, 100)
-    (768, 1000, 75)
+    (384, 1000, 37)
     """
     if open_files <= 0:
         return max_connections
-    reserved = min(_RESERVED_FILES, open_files // 4)
-    return max(1, min(max_connections, open_files - reserved))
+    return max(1, min(max_connections, _spare_files(open_files) // 2))
+
+
+def listen_backlog(open_files: int) -> int:
+    """Connections the kernel may queue for the server: uvicorn's 2048, or fewer so that
+    those and the capped ones fit under the open-file limit with the reserve.
+
+    >>> listen_backlog(1024), listen_backlog(65536)
+    (384, 2048)
+    """
+    if open_files <= 0:
+        return 2048
+    return max(16, min(2048, _spare_files(open_files) // 2))
+
+
+def _spare_files(open_files: int) -> int:
+    return open_files - min(_RESERVED_FILES, open_files // 4)
 
 
 def uvicorn_config(
@@ -116,14 +134,16 @@ def uvicorn_config(
 
     from semantic3d.server.http_guard import ConnectionLimits, guarded_protocol
 
+    open_files = raise_open_file_limit()
     limits = ConnectionLimits(
         max_header_bytes=settings.max_header_bytes,
         header_timeout_s=settings.header_timeout_s,
-        max_connections=connection_cap(settings.max_connections, raise_open_file_limit()),
+        max_connections=connection_cap(settings.max_connections, open_files),
     )
     return uvicorn.Config(
         app,
         http=guarded_protocol(limits),
+        backlog=listen_backlog(open_files),
         log_level=log_level,
         access_log=access_log,
         proxy_headers=settings.proxy_headers,
