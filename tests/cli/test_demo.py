@@ -1,6 +1,7 @@
 from __future__ import annotations
 
 import json
+import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -71,15 +72,18 @@ def test_demo_serve_scores_the_demo_submission_on_the_server(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     # everything `make demo` runs up to the point where the server starts listening
-    import uvicorn
+    from semantic3d.server import serving
 
     started: list[object] = []
-    monkeypatch.setattr(uvicorn, "run", lambda app, **options: started.append(app))
+    monkeypatch.setattr(serving, "run_server", lambda app, *args, **options: started.append(app))
     out = tmp_path / "demo"
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
     served = runner.invoke(
         app,
         ["demo", "--out", str(out), "--data", str(tmp_path / "none"), "--points", "60000",
-         "--serve"],
+         "--serve", "--port", str(port)],
     )  # fmt: skip
     assert served.exit_code == 0, served.output
     assert "invalid submission" not in served.output and "warning" not in served.output

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import stat
 import struct
 import time
@@ -18,6 +19,7 @@ from semantic3d.evaluation import (
     load_challenge,
     validate_submission,
 )
+from semantic3d.evaluation.contents import READ_FAILURES, SubmissionFile, read_failure
 from tests.evaluation.conftest import Scans, labels_bytes, write_zip
 
 
@@ -436,18 +438,50 @@ def test_duplicates_are_found_after_normalising_names(
 
 
 def test_reading_stops_one_line_past_the_expected_count(scans: Scans, tmp_path: Path) -> None:
-    # 64 MiB of "1\n" where 120 lines are expected: reading it all (the old behaviour)
-    # inflates and parses every byte, ~0.3 s CPU here (2 GiB: 24 s).
+    # 960 short lines where 120 are expected: within the bytes 121 lines may take, so the
+    # file is read, and reading stops at line 121.
     members = scans.pred_members()
-    members["alpha.labels"] = b"1\n" * (32 << 20)
+    members["alpha.labels"] = b"1\n" * 960
+    path = write_zip(tmp_path / "long.zip", members)
+    problems = _problems(path, scans)
+    assert problems == (
+        "alpha.labels: expected 120 lines (one per point of the scan), found more than 121 "
+        "(reading stopped there)",
+    )
+
+
+@pytest.mark.parametrize(
+    "content", [b"1\n" * (32 << 20), b"1" * (64 << 20)], ids=["lines", "no-newline"]
+)
+def test_more_bytes_than_the_lines_can_take_are_refused_unread(
+    scans: Scans, tmp_path: Path, content: bytes
+) -> None:
+    # 64 MiB where 120 lines (at most 121 x 16 bytes) are expected. Reading it all (the
+    # old behaviour) inflates and parses every byte, ~0.3 s CPU here (2 GiB: 10-24 s);
+    # without a line end, counting lines never stops early.
+    members = scans.pred_members()
+    members["alpha.labels"] = content
     path = tmp_path / "long.zip"
     with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED, compresslevel=1) as archive:
         for name, data in members.items():
             archive.writestr(name, data)
     del members
-    problems, cpu_s, _ = _bounded_problems(path, scans)
+    problems, cpu_s, peak_mb = _bounded_problems(path, scans)
     assert problems == (
-        "alpha.labels: expected 120 lines (one per point of the scan), found more than 121 "
-        "(reading stopped there)",
+        "alpha.labels: 67108864 bytes once inflated, more than 120 lines can take (at most "
+        "1936 bytes, 16 a line); not read",
     )
-    assert cpu_s < 0.1, f"{cpu_s:.2f} s CPU"
+    # (the other, valid file is parsed through a 4 MiB block buffer)
+    assert cpu_s < 0.05 and peak_mb < 8, f"{cpu_s:.3f} s CPU, {peak_mb:.1f} MB traced"
+
+
+def test_a_stream_is_never_read_past_its_byte_cap() -> None:
+    # The declared size is checked first; the cap also holds for a file that grows (or a
+    # member that inflates to more) after it was sized.
+    entry = SubmissionFile("a.labels", "a.labels", 10, lambda: io.BytesIO(b"1" * 4000))
+    with entry.open(max_bytes=1936) as handle, pytest.raises(READ_FAILURES) as caught:
+        while handle.read(1000):
+            pass
+    assert read_failure("a.labels", caught.value) == (
+        "a.labels: inflates to more than 1936 bytes once inflated (zip bomb?), reading stopped"
+    )

@@ -8,7 +8,7 @@ import socket
 import subprocess
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import httpx
@@ -41,10 +41,29 @@ def run_command(
     )
 
 
+def _soft_open_files(limit: int) -> Callable[[], None]:
+    """A child set-up that starts the process with a soft open-file limit of ``limit``."""
+
+    def lower() -> None:
+        import resource
+
+        hard = resource.getrlimit(resource.RLIMIT_NOFILE)[1]
+        resource.setrlimit(resource.RLIMIT_NOFILE, (limit, hard))
+
+    return lower
+
+
 class ServerProcess:
     """``semantic3d serve`` in a child process; ``url`` once it answers."""
 
-    def __init__(self, data_dir: Path, log: Path, *args: str, **env: str) -> None:
+    def __init__(
+        self,
+        data_dir: Path,
+        log: Path,
+        *args: str,
+        soft_open_files: int | None = None,
+        **env: str,
+    ) -> None:
         self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"
         self._log = log.open("ab")
@@ -53,6 +72,7 @@ class ServerProcess:
             env=environment(data_dir, **env),
             stdout=self._log,
             stderr=subprocess.STDOUT,
+            preexec_fn=None if soft_open_files is None else _soft_open_files(soft_open_files),
         )
         self._wait_ready(log)
 

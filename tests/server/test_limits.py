@@ -8,6 +8,7 @@ the test client (loopback only).
 from __future__ import annotations
 
 import asyncio
+import functools
 import io
 import os
 import sqlite3
@@ -16,6 +17,7 @@ import threading
 import time
 import tracemalloc
 import zipfile
+import zlib
 from collections.abc import AsyncIterator, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -124,6 +126,27 @@ def test_a_million_entry_style_index_is_refused_before_it_is_built(
     assert harness.stored_files() == []
 
 
+def test_a_record_signature_in_the_end_records_offset_field_hides_nothing(
+    strict_harness: Harness,
+) -> None:
+    # The 4-byte trick: the classic end record's offset field set to "PK\x05\x06". A
+    # search for the last record signature found a fake record there and skipped every
+    # check, while zipfile indexed all 100,000 entries (~1.5 s, ~50 MB; 1 M: +6 s, +500 MB).
+    harness = strict_harness
+    token = harness.user_token("mallory")
+    archive = bytearray(many_entries_zip(100_000))
+    archive[-6:-2] = b"PK\x05\x06"
+    upload_id = harness.upload(token, bytes(archive), chunk=8 << 20)
+    with Budget() as budget:
+        response = harness.finalize(token, upload_id)
+    assert response.status_code == 422, response.text
+    assert response.json()["problems"] == [
+        "archive holds 100000 members, more than the limit of 10000"
+    ]
+    assert budget.cpu_s < 0.3 and budget.peak_mb < 10, str(budget)
+    assert harness.stored_files() == []
+
+
 def test_rejected_uploads_count_toward_a_rate_limit(strict_harness: Harness) -> None:
     harness = strict_harness
     token = harness.user_token("mallory")
@@ -148,7 +171,8 @@ def test_rejected_uploads_count_toward_a_rate_limit(strict_harness: Harness) -> 
 
 def test_extra_lines_are_not_read_to_the_end(harness: Harness) -> None:
     # scan_a expects 3000 lines; this member has 32 M (64 MiB inflated, 1028:1 like the
-    # attack's 2 GiB ones). Reading it all took ~0.3 s CPU here (2 GiB: 24 s).
+    # attack's 2 GiB ones). Reading it all took ~0.3 s CPU here (2 GiB: 24 s); its
+    # declared size is more than 3001 lines can take, so it is not read at all.
     members = {f"{n}.labels": labels_text(v) for n, v in ground_truth_arrays().items()}
     members["scan_a.labels"] = b"1\n" * (32 << 20)
     with_extra = zipfile_bytes(members)
@@ -158,10 +182,88 @@ def test_extra_lines_are_not_read_to_the_end(harness: Harness) -> None:
         response = harness.finalize(token, upload_id)
     assert response.status_code == 422
     assert (
-        "scan_a.labels: expected 3000 lines (one per point of the scan), found more than 3001 "
-        "(reading stopped there)" in response.json()["problems"]
+        "scan_a.labels: 67108864 bytes once inflated, more than 3000 lines can take (at most "
+        "48016 bytes, 16 a line); not read" in response.json()["problems"]
     )
     assert budget.cpu_s < 0.15, str(budget)
+
+
+def test_gigabytes_without_a_line_end_are_refused_before_inflating(harness: Harness) -> None:
+    # A 4 MB upload whose two members inflate to 2 GiB of "1" each, with no line end
+    # (deflate at ~1030:1, under the ratio and size caps): counting lines never stopped
+    # early, so both were inflated to the end to be refused, ~10 s of CPU. A scan of
+    # 3000 points takes at most 3001 x 16 bytes: the declared 2 GiB are refused unread.
+    members = {name: ones_without_a_line_end(2 << 30) for name in ("scan_a", "scan_b")}
+    archive = raw_deflated_zip({f"{name}.labels": member for name, member in members.items()})
+    assert len(archive) < 5 << 20
+    token = harness.user_token("mallory")
+    upload_id = harness.upload(token, archive, chunk=8 << 20)
+    with Budget() as budget:
+        response = harness.finalize(token, upload_id)
+    assert response.status_code == 422
+    assert response.json()["problems"] == [
+        f"{name}.labels: 2147483648 bytes once inflated, more than {n} lines can take (at "
+        f"most {(n + 1) * 16} bytes, 16 a line); not read"
+        for name, n in (("scan_a", 3000), ("scan_b", 2000))
+    ]
+    assert budget.cpu_s < 0.1 and budget.peak_mb < 10, str(budget)
+
+
+@functools.cache
+def ones_without_a_line_end(n_bytes: int) -> tuple[bytes, int, int]:
+    """A raw deflate stream of ``n_bytes`` bytes of ``1``, its CRC-32 and ``n_bytes``.
+
+    Built from one fully flushed MiB repeated (a full flush resets the compressor, so
+    every MiB compresses to the same bytes): milliseconds instead of deflating gigabytes.
+    """
+    block = b"1" * (1 << 20)
+    compressor = zlib.compressobj(9, zlib.DEFLATED, -15)
+    piece = compressor.compress(block) + compressor.flush(zlib.Z_FULL_FLUSH)
+    stream = piece * (n_bytes >> 20) + compressor.flush(zlib.Z_FINISH)
+    crc = 0
+    for _ in range(n_bytes >> 20):
+        crc = zlib.crc32(block, crc)
+    return stream, crc, n_bytes
+
+
+def raw_deflated_zip(members: dict[str, tuple[bytes, int, int]]) -> bytes:
+    """A zip of already deflated members (``name -> (stream, crc, size)``)."""
+    local, central, offset = [], [], 0
+    for name, (stream, crc, size) in members.items():
+        encoded = name.encode()
+        header = struct.pack(
+            "<4s5H3L2H", b"PK\x03\x04", 20, 0, 8, 0, 0x21, crc, len(stream), size, len(encoded), 0
+        )
+        local += [header, encoded, stream]
+        central += [
+            struct.pack(
+                "<4s6H3L5H2L",
+                b"PK\x01\x02",
+                20,
+                20,
+                0,
+                8,
+                0,
+                0x21,
+                crc,
+                len(stream),
+                size,
+                len(encoded),
+                0,
+                0,
+                0,
+                0,
+                0,
+                offset,
+            ),
+            encoded,
+        ]
+        offset += len(header) + len(encoded) + len(stream)
+    directory = b"".join(central)
+    end = struct.pack(
+        "<4s4H2LH", b"PK\x05\x06", 0, 0, len(members), len(members), len(directory), offset, 0
+    )
+    return b"".join(local) + directory + end
 
 
 def zipfile_bytes(members: dict[str, bytes]) -> bytes:

@@ -8,7 +8,15 @@ from pathlib import Path
 
 import pytest
 
-from .conftest import PASSWORD, Harness, build_harness, form_csrf, make_settings, web_login
+from .conftest import (
+    PASSWORD,
+    Harness,
+    build_harness,
+    form_csrf,
+    make_settings,
+    web_login,
+    web_register,
+)
 
 GT_PROBES = [
     "/static/../ground-truth/toy/scan_a.labels",
@@ -234,6 +242,17 @@ def test_tokens_are_stored_hashed_and_can_be_revoked(harness: Harness) -> None:
         f"/account/tokens/{stored.id}/revoke", data={"csrf_token": form_csrf(account.text)}
     )
     assert harness.client.get("/api/me", headers=headers).status_code == 401
+
+
+def test_the_page_showing_a_new_token_is_never_cached(harness: Harness) -> None:
+    assert web_register(harness.client, "alice").status_code == 303
+    account = harness.client.get("/account")
+    assert account.headers["cache-control"] == "no-store"
+    created = harness.client.post(
+        "/account/tokens", data={"name": "laptop", "csrf_token": form_csrf(account.text)}
+    )
+    assert created.status_code == 200 and "s3d_" in created.text
+    assert created.headers["cache-control"] == "no-store"
 
 
 def test_no_route_serves_files_from_the_data_dir(harness: Harness) -> None:

@@ -44,6 +44,10 @@ def demo(
     """Run the main job end to end on embedded defaults."""
     started = time.perf_counter()
     with guarded():
+        if serve:  # a busy port is said now, not after the demo's minutes of work
+            from semantic3d.server.serving import check_port_free
+
+            check_port_free("127.0.0.1", port)
         out.mkdir(parents=True, exist_ok=True)
         if data.is_dir() and any(data.glob("*/*.txt")):
             _real_samples(data, out / "samples")

@@ -60,8 +60,11 @@ def serve(
     ),
     data_dir: Path | None = _DATA_DIR,
     database_url: str | None = _DATABASE_URL,
-    proxy_headers: bool = typer.Option(
-        False, "--proxy-headers", help="Trust X-Forwarded-* from 127.0.0.1 (behind nginx)."
+    proxy_headers: bool | None = typer.Option(
+        None,
+        "--proxy-headers/--no-proxy-headers",
+        help="Behind a reverse proxy: client addresses from X-Forwarded-For, believed only "
+        "from $SEMANTIC3D_FORWARDED_ALLOW_IPS (default 127.0.0.1,::1).",
     ),
 ) -> None:
     """Run the benchmark server (web pages and API) with uvicorn."""
@@ -70,25 +73,22 @@ def serve(
 
         require("fastapi", "server")
         require("uvicorn", "server")
-        import uvicorn
+        from semantic3d.server.serving import bind_listener
 
-        from semantic3d.server.app import create_app
-
-        extra = {} if worker is None else {"embedded_worker": worker}
+        extra: dict[str, Any] = {} if worker is None else {"embedded_worker": worker}
+        if proxy_headers is not None:
+            extra["proxy_headers"] = proxy_headers
         settings = _settings(data_dir, database_url, **extra)
+        sock = bind_listener(host, port)  # a busy port is one line, before any work
+        from semantic3d.server.app import create_app
+        from semantic3d.server.serving import run_server
+
         app = create_app(settings)
         ui.err_console.print(
             f"semantic3d server on http://{host}:{port} · data {settings.data_dir}"
             + (" · embedded worker" if settings.runs_embedded_worker else "")
         )
-        uvicorn.run(
-            app,
-            host=host,
-            port=port,
-            log_level="info",
-            proxy_headers=proxy_headers,
-            timeout_keep_alive=30,
-        )
+        run_server(app, settings, sock)
 
 
 def worker(
@@ -330,15 +330,15 @@ def serve_demo(
     the ground truth's) itself and the two must agree.
     """
     with guarded():
-        import uvicorn
-
         from semantic3d.evaluation import MethodInfo
         from semantic3d.server.app import create_app
         from semantic3d.server.demo import prepare_demo
+        from semantic3d.server.serving import bind_listener, run_server
 
         settings = _settings(
             out / "server-data", None, submission_cooldown_h=0, embedded_worker=True
         )
+        sock = bind_listener(host, port)
         method = result.method or MethodInfo(name="demo baseline")
         demo = prepare_demo(
             _database(settings),
@@ -360,7 +360,7 @@ def serve_demo(
             ui.console.print(f"account      demo / {demo.password}")
             ui.console.print(f"API token    {demo.token}")
         ui.console.print("[dim]Ctrl-C stops the server[/]")
-        uvicorn.run(create_app(settings), host=host, port=port, log_level="warning")
+        run_server(create_app(settings), settings, sock, log_level="warning")
 
 
 def register(app: typer.Typer) -> None:

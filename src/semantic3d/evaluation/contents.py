@@ -6,10 +6,11 @@ mean" hint), missing, extra, nested and duplicate files; one top-level folder to
 ``NAME.labels.json`` run records ``predict`` writes beside ``NAME.labels``). Archive safety: no absolute paths,
 ``..`` components or symbolic links; per-member and total uncompressed size caps and a
 compression-ratio cap (zip bombs), enforced on the declared sizes before reading and on
-the bytes actually inflated while streaming; the member count and the central
-directory's size are checked from the end-of-central-directory record (ZIP64 too) and a
-bounded walk of the directory *before* ``zipfile`` builds its index, so an archive of a
-million empty entries costs milliseconds, not seconds and hundreds of megabytes. Member
+the bytes actually inflated while streaming; the central directory is located and
+walked as ``zipfile`` will (:mod:`semantic3d.evaluation.zipdirectory`), its member count
+and size checked and any ambiguity refused *before* ``zipfile`` builds its index, so an
+archive of a million empty entries costs milliseconds, not seconds and hundreds of
+megabytes. Member
 names are compared normalised (``d//a.labels`` is ``d/a.labels``). Members are streamed
 (``zipfile.ZipFile.open``), never extracted.
 """
@@ -65,6 +66,10 @@ class SubmissionLimits:
     max_members: int = 10_000
     max_directory_bytes: int = 16 << 20
     """Largest central directory (10,000 entries with 255-byte names take 3 MB)."""
+    max_line_bytes: int = 16
+    """Bytes a line of a label file takes at most on average (a value, spaces around it,
+    CRLF): a file for a scan of ``n`` points is refused unread when it declares more than
+    ``(n + 1) * max_line_bytes`` bytes, and never read past them."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -81,11 +86,16 @@ class SubmissionFile:
         """True for a file found but refused unread (unsafe member, over a size cap)."""
         return self.opener is None
 
-    def open(self) -> io.RawIOBase:
-        """A fresh binary stream over the file's (uncompressed) bytes."""
+    def open(self, *, max_bytes: int | None = None) -> io.RawIOBase:
+        """A fresh binary stream over the file's (uncompressed) bytes.
+
+        ``max_bytes``: reading more than that many bytes raises (a
+        :data:`READ_FAILURES` exception that :func:`read_failure` words).
+        """
         if self.opener is None:
             raise ValueError(f"{self.name}: rejected file, not to be read")
-        return self.opener()
+        stream = self.opener()
+        return stream if max_bytes is None else _CappedReader(stream, max_bytes)
 
 
 @dataclass(slots=True)
@@ -108,7 +118,7 @@ class _LimitExceededError(Exception):
 class _CappedReader(io.RawIOBase):
     """A read-only stream that fails once more than ``limit`` bytes came through."""
 
-    def __init__(self, raw: io.BufferedIOBase, limit: int) -> None:
+    def __init__(self, raw: io.RawIOBase | io.BufferedIOBase, limit: int) -> None:
         super().__init__()
         self._raw = raw
         self._left = limit
@@ -361,7 +371,7 @@ def open_submission(
         raise SubmissionError([directory_problem], source=source)
     try:
         archive = zipfile.ZipFile(submission)
-    except (zipfile.BadZipFile, OSError, ValueError) as exc:
+    except (zipfile.BadZipFile, OSError, ValueError, NotImplementedError) as exc:
         raise SubmissionError(
             [f"expected a readable zip archive, found a corrupt or truncated one ({exc})"],
             source=source,

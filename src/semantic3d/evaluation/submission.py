@@ -4,7 +4,9 @@ Every problem is collected into one :class:`~semantic3d.core.errors.SubmissionEr
 layout and archive-safety problems (:mod:`semantic3d.evaluation.contents`), then content:
 every line an integer 1..8 (CRLF tolerated) and as many lines as the ground truth.
 Memory stays constant whatever the file sizes, and a file is never read past one line
-more than its scan has points.
+more than its scan has points, nor past the bytes those lines can take
+(``SubmissionLimits.max_line_bytes`` each): a file that declares more is refused unread,
+so a member of gigabytes without a line end costs nothing to refuse.
 """
 
 from __future__ import annotations
@@ -136,11 +138,20 @@ def validate_submission(
             if entry is None:
                 continue
             expected = expected_lines(scan)
-            # Never read more than one line past the expected count: a file that is too
-            # long is wrong whatever follows, and may be gigabytes of it.
+            # Never read more than one line past the expected count, nor more bytes than
+            # those lines can take: a file that is too long is wrong whatever follows,
+            # and may be gigabytes of it (with no line end for the count to stop at).
             budget = None if expected is None else expected + 1
+            max_bytes = None if budget is None else budget * limits.max_line_bytes
+            if max_bytes is not None and entry.size > max_bytes:
+                problems.append(
+                    f"{entry.name}: {entry.size} bytes once inflated, more than {expected} "
+                    f"lines can take (at most {max_bytes} bytes, {limits.max_line_bytes} a "
+                    "line); not read"
+                )
+                continue
             try:
-                with entry.open() as handle:
+                with entry.open(max_bytes=max_bytes) as handle:
                     stream = LabelStream(
                         handle,
                         source=entry.name,

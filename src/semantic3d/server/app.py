@@ -36,6 +36,7 @@ from semantic3d.server.routers.apidocs import router as api_docs_router
 from semantic3d.server.schemas import Health
 from semantic3d.server.services.challenges import ChallengeCache
 from semantic3d.server.services.leaderboard import LeaderboardCache
+from semantic3d.server.services.recovery import recover_stored_files
 from semantic3d.server.settings import Settings, load_settings
 from semantic3d.server.web import STATIC_DIR, ServerState, build_templates, render
 from semantic3d.server.worker import Worker, WorkerThread
@@ -150,7 +151,8 @@ def _body_too_large(n_bytes: int, *, more: bool = False) -> str:
 def create_app(settings: Settings | None = None) -> FastAPI:
     """The server for ``settings`` (default: from ``SEMANTIC3D_*`` environment variables).
 
-    Creates the data dir, upgrades the database schema, and, when
+    Creates the data dir, upgrades the database schema, gives the files of finalizes
+    that a crash interrupted back to their uploads (:mod:`.services.recovery`), and, when
     ``settings.runs_embedded_worker``, runs an evaluation worker on a background thread
     for the lifetime of the app.
     """
@@ -159,6 +161,15 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     engine = create_db_engine(settings)
     run_migrations(engine)
     factory = create_session_factory(engine)
+    recovered = recover_stored_files(factory, settings)
+    if recovered.restored or recovered.set_aside:
+        logger.warning(
+            "start-up: %d interrupted finalize(s) given back to their uploads, %d stored "
+            "file(s) set aside in %s",
+            len(recovered.restored),
+            len(recovered.set_aside),
+            settings.orphaned_dir,
+        )
     state = ServerState(
         settings=settings,
         engine=engine,

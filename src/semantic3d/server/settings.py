@@ -70,6 +70,34 @@ class Settings(BaseSettings):
     )
     rejected_upload_window_s: int = Field(default=3600, gt=0)
 
+    max_header_bytes: int = Field(
+        default=64 << 10,
+        ge=1024,
+        description="Largest request line and headers, together; more is answered 431.",
+    )
+    header_timeout_s: float = Field(
+        default=10.0,
+        gt=0,
+        description="A request line and headers must arrive within this, else the "
+        "connection is closed (408).",
+    )
+    max_connections: int = Field(
+        default=1000,
+        ge=1,
+        description="Open connections at most (also kept under the open-file limit); a new "
+        "one over the cap closes the one that has waited longest for its request.",
+    )
+    proxy_headers: bool = Field(
+        default=False,
+        description="Behind a reverse proxy: take the client address from X-Forwarded-For "
+        "(and the scheme from X-Forwarded-Proto) on connections from FORWARDED_ALLOW_IPS.",
+    )
+    forwarded_allow_ips: str = Field(
+        default="127.0.0.1,::1",
+        description="The proxy's addresses or networks, comma-separated: the only peers "
+        "whose X-Forwarded-* headers are believed.",
+    )
+
     max_member_bytes: int = Field(
         default=4 * GIB, gt=0, description="Largest label file inside a zip, once inflated."
     )
@@ -112,6 +140,19 @@ class Settings(BaseSettings):
 
     leaderboard_cache_s: float = Field(default=2.0, ge=0)
 
+    @field_validator("forwarded_allow_ips")
+    @classmethod
+    def _named_proxies(cls, value: str) -> str:
+        addresses = [item.strip() for item in value.split(",") if item.strip()]
+        if not addresses:
+            raise ValueError("expected the proxy's addresses, comma-separated")
+        if "*" in addresses:
+            raise ValueError(
+                "expected the proxy's addresses: '*' would believe X-Forwarded-For from "
+                "anyone, and per-address throttles with it"
+            )
+        return ",".join(addresses)
+
     @field_validator("data_dir")
     @classmethod
     def _absolute(cls, value: Path) -> Path:
@@ -133,6 +174,11 @@ class Settings(BaseSettings):
     def submissions_dir(self) -> Path:
         """Accepted submission zips, under server-generated names."""
         return self.data_dir / "submissions"
+
+    @property
+    def orphaned_dir(self) -> Path:
+        """Stored files that no submission or upload names, set aside at start-up."""
+        return self.data_dir / "orphaned"
 
     @property
     def ground_truth_dir(self) -> Path:

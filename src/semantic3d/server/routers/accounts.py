@@ -140,7 +140,9 @@ def logout(request: Request, csrf_token: str = Form("")) -> Response:
 def account_page(request: Request, user: PageUser) -> Response:
     if user is None:
         return RedirectResponse("/login?next=/account", status_code=303)
-    return render(request, "account.html", _account_context(request, user.id))
+    response = render(request, "account.html", _account_context(request, user.id))
+    response.headers["Cache-Control"] = "no-store"  # private: tokens, uploads
+    return response
 
 
 def _account_context(request: Request, user_id: int) -> dict[str, Any]:
@@ -159,10 +161,13 @@ def new_token(
         return RedirectResponse("/login?next=/account", status_code=303)
     check_csrf(request, csrf_token)
     _, secret = create_token(state_of(request).factory, user.id, name)
-    # Rendered in this response only: the secret is never stored or shown again.
-    return render(
+    # Rendered in this response only: the secret is never stored or shown again, nor
+    # kept by a browser or proxy cache (the back button asks the server again).
+    response = render(
         request, "account.html", _account_context(request, user.id) | {"new_token": secret}
     )
+    response.headers["Cache-Control"] = "no-store"
+    return response
 
 
 @router.post("/account/tokens/{token_id}/revoke", include_in_schema=False)

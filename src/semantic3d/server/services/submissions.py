@@ -4,14 +4,17 @@ Quota rules (checked in one transaction holding the account's row lock, so two
 simultaneous requests cannot both pass): one submission in flight per account (also a
 partial unique index), and one submission per challenge every ``submission_cooldown_h``
 hours, failed ones included. A submission that fails validation is answered with every
-problem at once and leaves nothing behind: no upload, no file, no queued job.
+problem at once and leaves nothing behind: no upload, no file, no queued job. An
+accepted upload's file moves into ``submissions/`` under the upload's id (recorded since
+the upload opened), then the submission row is committed: a crash between the two
+leaves a file that :func:`semantic3d.server.services.recovery.recover_stored_files`
+hands back to its upload at the next start, so no upload is lost and no file orphaned.
 """
 
 from __future__ import annotations
 
 import logging
 import os
-import uuid
 from datetime import datetime, timedelta
 from typing import Any, BinaryIO
 
@@ -39,7 +42,13 @@ from semantic3d.server.schemas import MethodCard, Progress, SubmissionInfo, Subm
 from semantic3d.server.services.challenges import NOT_INSTALLED, ChallengeCache, get_challenge
 from semantic3d.server.services.methods import method_columns, method_of, validate_method
 from semantic3d.server.services.scores import result_of, stored_iou
-from semantic3d.server.services.upload_files import locked_part, part_path, upload_sha256
+from semantic3d.server.services.upload_files import (
+    locked_part,
+    part_path,
+    stored_name_of,
+    sync_folders,
+    upload_sha256,
+)
 from semantic3d.server.services.uploads import delete_upload, owned_upload
 from semantic3d.server.settings import Settings
 
@@ -176,10 +185,14 @@ def _accept(
         problems = [problem.replace(str(path), upload.filename) for problem in exc.problems]
         raise SubmissionError(problems, source=upload.filename) from None
 
-    stored_name = f"{uuid.uuid4().hex}.zip"
+    # The stored name is the upload's id, which its database row has recorded since the
+    # upload was opened: a crash between this rename and the commit below leaves a file
+    # that the start-up sweep (services/recovery.py) can give back to its upload.
+    stored_name = stored_name_of(upload.id)
     target = settings.submissions_dir / stored_name
     os.fsync(handle.fileno())
     path.rename(target)
+    sync_folders(path.parent, target.parent)
     try:
         with write_transaction(factory) as session:
             now = utc_now()

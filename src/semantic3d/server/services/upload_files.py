@@ -81,6 +81,21 @@ def part_path(settings: Settings, upload_id: str) -> Path:
     return settings.uploads_dir / f"{upload_id}.part"
 
 
+def stored_name_of(upload_id: str) -> str:
+    """The name an accepted upload's file takes under ``submissions/``."""
+    return f"{upload_id}.zip"
+
+
+def sync_folders(*folders: Path) -> None:
+    """``fsync`` folders, so that renames into or out of them survive a power cut."""
+    for folder in dict.fromkeys(folders):
+        fd = os.open(folder, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
 def received_bytes(settings: Settings, upload_id: str) -> int:
     """Bytes received so far (0 if the part file is gone)."""
     try:
