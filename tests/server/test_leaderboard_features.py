@@ -13,7 +13,7 @@ import pytest
 
 from semantic3d.core.classes import CLASSES
 from semantic3d.server.services.challenges import CONFUSION_MIN_SCANS, set_show_confusion
-from semantic3d.server.services.leaderboard import CSV_COLUMNS
+from semantic3d.server.services.leaderboard_export import CSV_COLUMNS
 from semantic3d.server.web import STATIC_DIR, format_bytes, format_duration
 
 from .conftest import (
