@@ -37,7 +37,7 @@ cnn_app = typer.Typer(
 
 _CONFIG_HELP = (
     'TOML configuration (preset = "paper" | "cpu-short"; sections cubes, network, training, '
-    "prediction). Default: the paper's values."
+    "prediction). Default: the paper's values where it gives them."
 )
 _SCANS_HELP = "Scan names (NAME of NAME.txt) to use, repeatable or comma-separated; default all."
 _OVERWRITE_HELP = "Replace outputs that already exist (refused otherwise)."

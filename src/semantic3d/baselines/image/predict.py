@@ -4,7 +4,8 @@
 (:func:`~semantic3d.baselines.common.predict_scan`: any format, labels in the input's point
 order, a run record beside them, nothing replaced unless asked) with the model bound to
 that station, and writes ``NAME.faces/<face>.png`` beside the labels: colour, ground truth
-(when the scan has labels) and prediction side by side, as in the paper's figure.
+(when the scan has labels) and prediction side by side (the paper's Figure 2 shows ground
+truth above prediction).
 """
 
 from __future__ import annotations
