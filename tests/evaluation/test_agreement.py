@@ -120,7 +120,7 @@ def _reference(
 ) -> tuple[np.ndarray, int]:
     """One untiled cKDTree over the whole source scan: the textbook transfer.
 
-    The paper's order searches among all source points and leaves out the pairs whose
+    The default order searches among all source points and leaves out the pairs whose
     source point is unlabelled or an artefact; ``exclude_first`` removes those first.
     """
     from scipy.spatial import cKDTree

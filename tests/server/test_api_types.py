@@ -78,8 +78,9 @@ def test_the_openapi_schema_names_a_response_model_for_every_json_route(
                     ref = response["content"][_JSON]["schema"].get("$ref", "")
                     assert ref.endswith("/ErrorBody"), f"{where} {status}: {ref!r}"
     # Every JSON route of the API, the health check included.
-    assert len(checked) == 13, checked
+    assert len(checked) == 14, checked
     assert "GET /api/challenges/{name}/leaderboard" in checked
+    assert "GET /challenges/{name}/leaderboard.json" in checked  # the board's JSON download
 
 
 def test_the_client_returns_typed_objects(harness: Harness, tmp_path: Path) -> None:

@@ -1,5 +1,6 @@
-"""Headless Chromium with every request off this server blocked: the API docs render and the
-leaderboard sorts (Debian's /usr/bin/chromium through Playwright; skipped without it).
+"""Headless Chromium with every request off this server blocked: the API docs render, the
+leaderboard sorts and filters by tag, and a reference row's method page renders (Debian's
+/usr/bin/chromium through Playwright; skipped without it).
 
 Screenshots go to ``$SEMANTIC3D_TEST_ARTIFACTS`` when set, else the test's temporary folder.
 """
@@ -99,21 +100,42 @@ def test_docs_render_offline_and_the_leaderboard_sorts(
         page.screenshot(path=str(artifacts / "api-docs.png"))
 
         page.goto(server.url + "/challenges/reduced-8")
-        assert page.locator("tr.reference").count() == 3
+        rows = page.locator("#leaderboard tbody tr")
+        assert rows.count() == 8
+        assert page.locator("tr[data-tag=paper-baseline]").count() == 3
+        assert page.is_visible("#tag-filter")  # shown by the page's script
+        page.uncheck("#tag-filter input[value=published]")
+        assert page.locator("#leaderboard tbody tr:visible").count() == 3
+        assert page.inner_text("#shown-count") == "3 rows"
+        page.check("#tag-filter input[value=published]")
+        assert page.locator("#leaderboard tbody tr:visible").count() == 8
+        methods = page.locator("#leaderboard tbody tr td:nth-child(2) a.method")
+        assert methods.all_inner_texts()[0] == "SCF-Net"
+        page.click("#leaderboard thead th[data-column='9']")  # IoU of class 5, buildings
+        assert methods.all_inner_texts()[:2] == ["RandLA-Net", "SCF-Net"]  # 95.7, 95.3
+        page.click("#leaderboard thead th[data-column='0']")  # the board's own order again
+        assert methods.all_inner_texts()[0] == "SCF-Net"
         page.screenshot(path=str(artifacts / "reference-board.png"), full_page=True)
+
+        page.click("text=DeepNet")
+        page.wait_for_selector("#method-card")
+        assert page.inner_text("h1") == "DeepNet"
+        assert "paper baseline" in page.inner_text("#tag")
+        assert "nsavinov/semantic3dnet" in page.inner_text("#code")
+        assert page.locator("#scores tbody td").count() == 2 + 8
+        page.screenshot(path=str(artifacts / "reference-method-page.png"), full_page=True)
 
         page.goto(server.url + "/challenges/toy")
         methods = page.locator("#leaderboard tbody tr td:nth-child(2) a")
         assert methods.all_inner_texts() == ["Method bob", "Method cyd", "Method ada"]
-        page.click("#leaderboard thead th:nth-child(13)")  # T (run time): highest first
+        assert page.locator("#tag-filter").count() == 0  # one tag: nothing to filter
+        page.click("#col-runtime")  # T (run time): highest first
         assert methods.all_inner_texts() == ["Method cyd", "Method bob", "Method ada"]
-        page.click("#leaderboard thead th:nth-child(3)")  # mIoU: highest first
+        page.click("#col-miou")  # mIoU: highest first
         assert methods.all_inner_texts() == ["Method bob", "Method cyd", "Method ada"]
-        page.click("#leaderboard thead th:nth-child(3)")  # again: lowest first
+        page.click("#col-miou")  # again: lowest first
         assert methods.all_inner_texts() == ["Method ada", "Method cyd", "Method bob"]
-        assert page.get_attribute("#leaderboard thead th:nth-child(3)", "aria-sort") == (
-            "ascending"
-        )
+        assert page.get_attribute("#col-miou", "aria-sort") == "ascending"
         page.screenshot(path=str(artifacts / "sorted-board.png"), full_page=True)
 
         page.goto(server.url + "/login")

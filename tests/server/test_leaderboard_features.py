@@ -13,9 +13,19 @@ import pytest
 
 from semantic3d.core.classes import CLASSES
 from semantic3d.server.services.challenges import CONFUSION_MIN_SCANS, set_show_confusion
-from semantic3d.server.services.leaderboard import CSV_COLUMNS
+from semantic3d.server.services.leaderboard_export import CSV_COLUMNS, iou_column
 from semantic3d.server.web import STATIC_DIR, format_bytes, format_duration
 
+from .board_html import (
+    FIRST_IOU,
+    MEAN_IOU,
+    METHOD,
+    OVERALL_ACCURACY,
+    RANK,
+    RUNTIME,
+    TAG,
+    BoardTable,
+)
 from .conftest import (
     PASSWORD,
     Harness,
@@ -84,34 +94,71 @@ def test_csv_export_of_a_benchmark_board_lists_the_references_without_rank(
     harness: Harness,
 ) -> None:
     rows = _csv_rows(harness, "reduced-8")
-    assert [row["method"] for row in rows] == ["DeepNet", "TML-PCR", "TMLC-MSR"]  # by mIoU
+    assert [row["method"] for row in rows][-3:] == ["TMLC-MSR", "DeepNet", "TML-PCR"]  # by mIoU
+    assert rows[0]["method"] == "SCF-Net"
     assert all(row["kind"] == "reference" and row["rank"] == "" for row in rows)
-    deep_net = rows[0]
+    assert [row["position"] for row in rows] == [str(i) for i in range(1, len(rows) + 1)]
+    deep_net = next(row for row in rows if row["method"] == "DeepNet")
     assert (deep_net["mean_iou"], deep_net["overall_accuracy"]) == ("0.437", "0.772")
     assert deep_net["runtime_s"] == "64800.0" and "1704.03847" in deep_net["paper_url"]
-    assert rows[2]["mean_iou"] == "" and rows[2]["iou_cars"] == ""  # not known: empty
+    assert deep_net["tag"] == "paper-baseline" and deep_net["source_year"] == "2017"
+    assert deep_net["method_page"] == "/challenges/reduced-8/references/deepnet"
+    assert "Hackel" in deep_net["source"] and "1704.03847" in deep_net["source_url"]
+    randla = next(row for row in rows if row["method"] == "RandLA-Net")
+    assert randla["tag"] == "published" and randla["runtime_s"] == ""  # not known: empty
+    conv_point = next(r for r in _csv_rows(harness, "semantic-8") if r["method"] == "ConvPoint")
+    assert conv_point["overall_accuracy"] == "" and conv_point["iou_cars"] == ""
     assert harness.client.get("/challenges/nope/leaderboard.csv").status_code == 404
 
 
-class _Table(HTMLParser):
-    """Headings with data-sort and each body row's data-value cells."""
+def test_the_json_download_is_the_api_board(harness: Harness) -> None:
+    for name in ("reduced-8", "toy"):
+        download = harness.client.get(f"/challenges/{name}/leaderboard.json")
+        assert download.status_code == 200
+        assert download.headers["content-type"] == "application/json"
+        assert f'filename="{name}-leaderboard.json"' in download.headers["content-disposition"]
+        api = harness.client.get(f"/api/challenges/{name}/leaderboard")
+        assert download.content == api.content
+    assert harness.client.get("/challenges/nope/leaderboard.json").status_code == 404
+    paths = harness.client.get("/api/openapi.json").json()["paths"]
+    for path in (
+        "/api/challenges/{name}/leaderboard",
+        "/challenges/{name}/leaderboard.json",
+        "/challenges/{name}/leaderboard.csv",
+    ):
+        assert "get" in paths[path], path
 
-    def __init__(self) -> None:
-        super().__init__()
-        self.sortable: list[str | None] = []
-        self.rows: list[list[str | None]] = []
-        self._in_body = False
 
-    def handle_starttag(self, tag: str, attrs: list[tuple[str, str | None]]) -> None:
-        values = dict(attrs)
-        if tag == "th":
-            self.sortable.append(values.get("data-sort"))
-        elif tag == "tbody":
-            self._in_body = True
-        elif tag == "tr" and self._in_body:
-            self.rows.append([])
-        elif tag == "td" and self._in_body:
-            self.rows[-1].append(values.get("data-value"))
+def test_csv_and_json_exports_match_the_page(harness: Harness) -> None:
+    alice, bob = harness.user_token("alice"), harness.user_token("bob")
+    _published(harness, alice, 0.6, "Forest", runtime_s=5400, hardware="8 cores")
+    _published(harness, bob, 0.99, "Oracle", code_url="https://c.org")
+    harness.state.leaderboards.invalidate()
+    for name in ("toy", "reduced-8", "semantic-8"):
+        page = BoardTable.parse(harness.client.get(f"/challenges/{name}").text).rows
+        lines = _csv_rows(harness, name)
+        board = harness.client.get(f"/api/challenges/{name}/leaderboard").json()
+        api = sorted(board["entries"] + board["references"], key=lambda row: row["position"])
+        assert len(page) == len(lines) == len(api) > 0
+        for html, line, row in zip(page, lines, api, strict=True):
+            assert html.method == line["method"] == row["method"]
+            assert html.tag == line["tag"] == row["tag"]
+            assert html.href == line["method_page"] == row["method_page"]
+            rank = "" if row["rank"] is None else str(row["rank"])
+            assert html.cells[RANK].value == line["rank"] == rank
+            numbers = [
+                (MEAN_IOU, "mean_iou", row["mean_iou"]),
+                (OVERALL_ACCURACY, "overall_accuracy", row["overall_accuracy"]),
+                (RUNTIME, "runtime_s", row["runtime_s"]),
+            ] + [
+                (FIRST_IOU + i, iou_column(cls.name), row["iou"][str(cls.value)])
+                for i, cls in enumerate(CLASSES)
+            ]
+            for index, column, value in numbers:
+                exported = float(line[column]) if line[column] else None
+                assert html.number(index) == exported == value, (name, row["method"], column)
+    toy = BoardTable.parse(harness.client.get("/challenges/toy").text).rows
+    assert [row.method for row in toy] == ["Oracle", "Forest"]
 
 
 def test_leaderboard_columns_are_sortable_by_a_local_script(harness: Harness) -> None:
@@ -120,16 +167,24 @@ def test_leaderboard_columns_are_sortable_by_a_local_script(harness: Harness) ->
     page = harness.client.get("/challenges/toy").text
     assert '<script src="/static/sort.js" defer></script>' in page
     assert 'class="board sortable"' in page
-    table = _Table()
-    table.feed(page)
-    assert table.sortable[:4] == ["number", "text", "number", "number"]
-    assert table.sortable.count("number") == 3 + len(CLASSES) + 1  # #, mIoU, OA, IoUs, T
+    table = BoardTable.parse(page)
+    sortable = {
+        int(str(h["data-column"])): h["data-sort"] for h in table.headings if h.get("data-sort")
+    }
+    assert sortable[RANK] == "position" and sortable[METHOD] == sortable[TAG] == "text"
+    numeric = [MEAN_IOU, OVERALL_ACCURACY, *range(FIRST_IOU, RUNTIME + 1)]
+    assert all(sortable[column] == "number" for column in numeric)
+    # Grouped headings: "Overall" over mIoU and OA, "IoU per class" over the classes.
+    groups = [h for h in table.headings if h.get("class") == "group"]
+    assert [h["colspan"] for h in groups] == ["2", str(len(CLASSES))]
     (row,) = table.rows
-    assert row[0] == "1" and row[3] is not None and float(row[3]) > 0.5  # mIoU as a fraction
-    assert row[4 + len(CLASSES)] == "90.0"  # T in seconds
-    script = harness.client.get("/static/sort.js")
-    assert script.status_code == 200 and "javascript" in script.headers["content-type"]
-    assert "http" not in script.text
+    assert row.cells[RANK].value == "1" and (row.number(MEAN_IOU) or 0) > 0.5  # a fraction
+    assert row.number(RUNTIME) == 90.0 and row.cells[RUNTIME].text == "90 s"
+    assert row.tag == "verified" and row.href and row.href.startswith("/submissions/")
+    for script in ("/static/sort.js", "/static/board.js"):
+        response = harness.client.get(script)
+        assert response.status_code == 200 and "javascript" in response.headers["content-type"]
+        assert "http" not in response.text
 
 
 def test_submit_page_shows_sizes_cooldown_and_a_complete_command(

@@ -50,7 +50,7 @@ cnn_app = typer.Typer(
 
 _CONFIG_HELP = (
     'TOML configuration (preset = "paper" | "cpu-short"; sections cubes, network, training, '
-    "prediction). Default: the paper's values."
+    "prediction). Default: the paper's values where it gives them."
 )
 _BATCHES_HELP = "Train this many mini-batches instead of the configuration's (a shortened run)."
 

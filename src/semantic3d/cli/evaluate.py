@@ -325,7 +325,8 @@ def agreement(
         False,
         "--exclude-first",
         help="Remove unlabelled points and scanning artefacts before the neighbour search "
-        "(default, as the paper: search among all points, then leave out their pairs).",
+        "(default: search among all points, then leave out their pairs; the paper does "
+        "not say which order it used).",
     ),
     overwrite: bool = typer.Option(False, "--overwrite", help=_OVERWRITE_HELP),
     scheduler: str | None = scheduler_option(),

@@ -1,18 +1,20 @@
 """Label agreement between two overlapping labelled scans (the paper's consistency check).
 
-semantic3D.net checked its labelling by transferring labels between overlapping scans:
-each point takes the label of its nearest neighbour in the other scan when that neighbour
-lies within 5 cm, and the transferred labels are scored against the point's own labels.
-The check is asymmetric, so both directions are computed:
+semantic3D.net checked its labelling by transferring labels between overlapping scans
+(Section 6 of the paper): each point takes the label of its nearest neighbour in the other
+scan when that neighbour lies within 5 cm, and the transferred labels are scored against
+the point's own labels. The check is asymmetric, so both directions are computed:
 
 - ``a_to_b``: labels of A transferred onto the points of B; confusion rows are B's own
   labels, columns the labels taken from A;
 - ``b_to_a``: the reverse.
 
-As in the paper, correspondences are found among *all* points, and the pairs involving a
-point labelled 7 (scanning artefacts: moving objects and noise seen by one scan only) or 0
-(unlabelled) on either side are then left out: a point whose nearest neighbour in the
-other scan is an artefact is not matched. ``exclude_before_matching=True`` removes those
+The paper ignores scanning artefacts (class 7) "in the evaluation" without saying when.
+By default (our choice) correspondences are found among *all* points, and the pairs
+involving a point labelled 7 (moving objects and noise seen by one scan only) or 0
+(unlabelled: never scored by the benchmark; the paper does not mention it here) on either
+side are then left out: a point whose nearest neighbour in the other scan is an artefact
+is not matched. ``exclude_before_matching=True`` removes those
 points from both scans before the search instead (the neighbour found may then be a point
 further away). Points without a neighbour within ``max_distance_m`` are counted as
 unmatched and left out of the matrix.
@@ -282,7 +284,8 @@ def compute_label_agreement(
         spill_directory: where the temporary tile files go (system default when None).
         progress: called with tiles done and total while matching.
         exclude_before_matching: remove labels 0 and 7 before the neighbour search
-            instead of leaving out the pairs involving them afterwards (the paper's order).
+            instead of leaving out the pairs involving them afterwards (the default; the
+            paper does not say which order it used).
         map_tiles: matches the tiles elsewhere (:func:`match_folder_tile` per tile, e.g. on
             a Dask cluster) instead of here; the stores then always go to disk, under
             ``spill_directory``, which the workers must see. Same result.

@@ -26,7 +26,8 @@ RESULT_FORMAT = "semantic3d.evaluation-result/1"
 
 @dataclass(frozen=True, slots=True)
 class MethodInfo:
-    """The method a submission comes from, as the paper's tables list it.
+    """The method a submission comes from: its name and run time T as the paper's tables
+    list them, and what the paper asks participants to state besides (hardware, Section 5).
 
     Attributes:
         name: method name shown in tables.

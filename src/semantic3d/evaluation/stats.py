@@ -1,4 +1,5 @@
-"""Points per class per split: the paper's class-statistics analysis of a labels folder.
+"""Points per class per split: the paper's class statistics (its Figure 5(a), Section 6)
+of a labels folder.
 
 Every ``.labels`` file of a folder is streamed once (constant memory) and its label values
 counted. A file whose stem is a benchmark scan (``semantic3d.datasets.registry``) is

@@ -28,13 +28,15 @@ class FeatureConfig:
         k_neighbours: neighbours per query at every level (the query's own voxel included).
         per_point: False (default): each point takes the features of its voxel at every
             level (features computed once per voxel). True: every full-resolution point is
-            a query of its own at every level (the paper's definition; ~n_levels times
-            the k-NN work at full resolution).
+            a query of its own at every level (Hackel et al. 2016 as we read it; the
+            semantic3D.net paper does not say; ~n_levels times the k-NN work at full
+            resolution).
         colour: add HSV of the mean neighbourhood colour per level.
         intensity: add the mean neighbourhood intensity per level.
         spherical_height: the height range, height below and above over the k nearest
             neighbours per level (``vertical_range``, ``height_below``, ``height_above``).
-        cylinders: height features of vertical cylinders per level (the paper's:
+        cylinders: height features of vertical cylinders per level (the paper's "height
+            features based on vertical, cylindrical neighbourhoods"; the columns are ours:
             ``cylinder_range``, ``cylinder_below``, ``cylinder_above``, ``cylinder_points``;
             :mod:`~semantic3d.features.cylinders`).
         cylinder_radius_voxels: cylinder radius in voxel sizes of its level (the radius

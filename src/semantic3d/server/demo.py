@@ -3,10 +3,17 @@
 The demo's ground truth becomes a custom challenge, its predictions a submission that
 goes through the ordinary path (upload, validation, queue, the worker's
 ``evaluate_submission``) and is published, so the page shows what a participant sees.
+
+Running the demo again on the same data folder adds nothing for the same predictions:
+the zip is built byte for byte the same from the same ``.labels`` files, and a submission
+of the demo account with that hash is reused. New predictions make a new submission,
+and the demo account's earlier ones are withdrawn from the board (kept, not deleted), so
+the board shows the demo's current result once.
 """
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import secrets
 import shutil
@@ -68,12 +75,65 @@ def import_submission(
     )
 
 
+_ZIP_TIME = (1980, 1, 1, 0, 0, 0)
+
+
 def zip_predictions(folder: Path, target: Path) -> Path:
-    """Zip every ``*.labels`` file of ``folder`` (flat) into ``target``."""
+    """Zip every ``*.labels`` file of ``folder`` (flat) into ``target``, reproducibly.
+
+    Members are written in name order with a fixed time stamp and mode, so the same
+    files always give the same bytes (and the same sha256), whenever they were written.
+    """
     with zipfile.ZipFile(target, "w", zipfile.ZIP_DEFLATED, compresslevel=6) as archive:
         for path in sorted(folder.glob("*.labels")):
-            archive.write(path, path.name)
+            info = zipfile.ZipInfo(path.name, date_time=_ZIP_TIME)
+            info.compress_type = zipfile.ZIP_DEFLATED
+            info.external_attr = 0o644 << 16
+            with path.open("rb") as source, archive.open(info, "w") as member:
+                shutil.copyfileobj(source, member, 1 << 20)
     return target
+
+
+def _sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with path.open("rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def _same_submission(
+    factory: sessionmaker[Session], *, user_id: int, challenge_id: int, sha256: str
+) -> Submission | None:
+    """The account's evaluated submission of the same zip to the challenge, if any."""
+    with factory() as session:
+        return session.scalars(
+            select(Submission)
+            .where(
+                Submission.user_id == user_id,
+                Submission.challenge_id == challenge_id,
+                Submission.sha256 == sha256,
+                Submission.mean_iou.is_not(None),
+            )
+            .order_by(Submission.id.desc())
+        ).first()
+
+
+def _withdraw_others(
+    factory: sessionmaker[Session], *, user_id: int, challenge_id: int, keep_id: int
+) -> None:
+    """Withdraw the account's other published submissions to the challenge from its board."""
+    with factory() as session:
+        others = session.scalars(
+            select(Submission.id).where(
+                Submission.user_id == user_id,
+                Submission.challenge_id == challenge_id,
+                Submission.published,
+                Submission.id != keep_id,
+            )
+        ).all()
+    for submission_id in others:
+        set_published(factory, user_id=user_id, submission_id=submission_id, published=False)
 
 
 def prepare_demo(
@@ -107,9 +167,16 @@ def prepare_demo(
         password = secrets.token_urlsafe(12)
         user = create_user(factory, DEMO_USER, password)
         token = create_token(factory, user.id, "demo")[1]
+    with factory() as session:
+        challenge_id = session.scalars(
+            select(ChallengeRecord.id).where(ChallengeRecord.name == DEMO_CHALLENGE)
+        ).one()
     archive = zip_predictions(predictions, settings.data_dir / "demo-predictions.zip")
     try:
-        submission = import_submission(
+        same = _same_submission(
+            factory, user_id=user.id, challenge_id=challenge_id, sha256=_sha256(archive)
+        )
+        submission = same or import_submission(
             factory,
             settings,
             cache,
@@ -120,11 +187,15 @@ def prepare_demo(
         )
     finally:
         archive.unlink()
-    Worker(settings, factory, cache=cache).run_once()
+    if same is not None:
+        logger.info("demo submission #%d: the same predictions, reused", submission.id)
+    else:
+        Worker(settings, factory, cache=cache).run_once()
     with factory() as session:
         evaluated = session.get_one(Submission, submission.id)
         mean_iou = evaluated.mean_iou
     if mean_iou is not None:
         set_published(factory, user_id=user.id, submission_id=submission.id, published=True)
+        _withdraw_others(factory, user_id=user.id, challenge_id=challenge_id, keep_id=submission.id)
     logger.info("demo submission #%d evaluated: mIoU %s", submission.id, mean_iou)
     return DemoServer(submission.id, mean_iou, password, token)

@@ -86,8 +86,22 @@ class ChallengeList(ApiModel):
     challenges: list[ChallengeInfo]
 
 
+class ReferenceSource(ApiModel):
+    """A publication reference values were read from."""
+
+    citation: str
+    url: str
+    label: str
+    year: int | None = None
+
+
 class LeaderboardRow(ApiModel):
-    """A participant's published submission, or a reference result (no rank, no date)."""
+    """A participant's published submission, or a reference result (no rank, no date).
+
+    ``tag`` is ``"verified"`` (a submission this server evaluated), ``"paper-baseline"``
+    (a baseline of the semantic3D.net paper) or ``"published"`` (published elsewhere,
+    not verified here); ``position`` is the row's place on the board's page (1 first).
+    """
 
     rank: int | None
     reference: bool
@@ -102,18 +116,26 @@ class LeaderboardRow(ApiModel):
     submitted_at: UtcTime | None
     paper_url: str
     code_url: str
-
-
-class ReferenceSource(ApiModel):
-    """The publication the reference rows come from."""
-
-    citation: str
-    url: str
-    label: str
+    tag: str = Field(default="verified", description='"verified", "paper-baseline" or "published"')
+    position: int | None = Field(default=None, description="place on the board page, 1 first")
+    method_page: str = Field(default="", description="path of the row's method page")
+    source: ReferenceSource | None = Field(
+        default=None, description="where a reference row's values were read"
+    )
+    table: str = Field(default="", description="where in the source the row is printed")
+    iou_notes: dict[str, str] = Field(
+        default_factory=dict, description="label value -> the source's footnote on that cell"
+    )
+    description: str = Field(default="", description="the method, in Markdown")
+    note: str = ""
 
 
 class Leaderboard(ApiModel):
-    """A challenge's public board: ranked ``entries`` and, apart, unranked ``references``."""
+    """A challenge's public board: ranked ``entries`` and, apart, unranked ``references``.
+
+    ``reference_source`` is the semantic3D.net paper (the benchmark's own publication);
+    each reference row names its own ``source``.
+    """
 
     challenge: ChallengeInfo
     entries: list[LeaderboardRow]

@@ -23,6 +23,14 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from semantic3d.core.classes import CLASSES
 from semantic3d.server.errors import AuthenticationError, ForbiddenError
+from semantic3d.server.formatting import (
+    format_percent,
+    format_seconds,
+    format_seconds_plain,
+    plural,
+    render_markdown,
+    render_markdown_inline,
+)
 from semantic3d.server.models import User
 from semantic3d.server.services.accounts import end_sessions, get_user, user_for_token
 from semantic3d.server.services.challenges import ChallengeCache
@@ -151,10 +159,14 @@ def build_templates(settings: Settings) -> Jinja2Templates:
     env.globals["site_title"] = settings.site_title
     env.globals["classes"] = CLASSES
     env.globals["csrf_token"] = csrf_token
-    env.filters["pct"] = lambda value: "–" if value is None else f"{100 * value:.1f}"
+    env.filters["pct"] = format_percent
     env.filters["when"] = lambda value: "" if value is None else f"{value:%Y-%m-%d %H:%M} UTC"
     env.filters["day"] = lambda value: "" if value is None else f"{value:%Y-%m-%d}"
-    env.filters["seconds"] = _format_seconds
+    env.filters["seconds"] = format_seconds
+    env.filters["seconds_plain"] = format_seconds_plain
+    env.filters["plural"] = plural
+    env.filters["markdown"] = render_markdown
+    env.filters["markdown_inline"] = render_markdown_inline
     env.filters["filesize"] = format_bytes
     env.filters["duration"] = format_duration
     return templates
@@ -195,16 +207,6 @@ def format_duration(seconds: float | None) -> str:
     if hours:
         return f"{hours} h {minutes} min" if minutes else f"{hours} h"
     return f"{minutes} min"
-
-
-def _format_seconds(value: float | None) -> str:
-    if value is None:
-        return "–"
-    if value < 120:
-        return f"{value:g} s"
-    if value < 7200:
-        return f"{value / 60:.0f} min"
-    return f"{value / 3600:.1f} h"
 
 
 def render(

@@ -1,9 +1,10 @@
 """Cube maps of a scan: its points splatted onto the six faces of a cube around the station.
 
-The paper's 2D baseline turns point labelling into image segmentation by rendering each
-scan, from its scanner's station, onto the six faces of a cube: colour faces, label faces
-(the same projection of the ground truth) and, here, an *index face* saying which point
-each pixel shows, so labels go back to the points exactly.
+The paper's 2D baseline turns point labelling into image segmentation by converting each
+scan's colours to images "with cube mapping" and projecting its ground truth the same way.
+Here each scan is rendered from its scanner's station onto the six faces of a cube:
+colour faces, label faces (the same projection of the ground truth) and an *index face*
+saying which point each pixel shows, so labels go back to the points exactly.
 
 Geometry. Faces follow the world axes, in the order :data:`FACE_NAMES` (``px`` looks
 along +x, ``pz`` up). A point ``p`` seen from station ``s`` has direction ``d = p - s``; it
@@ -261,7 +262,7 @@ class CubeMap:
         return float(self.has_point.mean())
 
     def label_image(self, labels: NDArray[np.uint8] | None = None) -> NDArray[np.uint8]:
-        """``(6, size, size, 3)`` label faces in the paper's colours.
+        """``(6, size, size, 3)`` label faces in the colours of the paper's Figure 2.
 
         Classes in the benchmark colours, white where the shown point is unlabelled (0),
         black where no point is shown. ``labels`` (``(6, size, size)`` label values, e.g.

@@ -1,8 +1,12 @@
 """Configuration of the 3D CNN baseline (DeepNet): frozen dataclasses, loaded from one TOML file.
 
-Every default is the value the semantic3D.net paper publishes (``preset = "paper"``); a
-file changes only what it names. ``preset = "cpu-short"`` starts from the paper's values
-with a training schedule short enough for a CPU (and says so in every model it trains).
+Every value the semantic3D.net paper gives (Section 3.3) is the default (``preset =
+"paper"``): voxel sizes, cube size, channels, hidden units, dropout, batch size, number of
+batches, rotation period, Adadelta. What the paper does not give is ours: Adadelta's
+learning rate and rho (torch's defaults), tile sizes, checkpoints, the class list, the
+prediction settings and the seed (docs/baseline_cnn.md lists every difference). A file
+changes only what it names. ``preset = "cpu-short"`` starts from these values with a
+training schedule short enough for a CPU (and says so in every model it trains).
 
 .. code-block:: toml
 
@@ -141,15 +145,17 @@ class NetworkConfig:
 @dataclass(frozen=True, slots=True)
 class TrainingConfig:
     """The paper's schedule: Adadelta, class-balanced batches of 100, 74,700 batches, a
-    random rotation of the scan about z every 100 batches.
+    random rotation of the scan about z every 100 batches. Adadelta's settings, the class
+    list, the tiles, checkpoints and the seed are not in the paper.
 
     Attributes:
         batch_size: points per mini-batch.
         n_batches: mini-batches of the whole run.
         rotate_every: batches between two random rotations of the training scans about z
             (the cubes of those batches are generated together, from one rotation).
-        learning_rate: Adadelta's learning rate (torch's default 1.0, as Torch7's).
-        rho: Adadelta's decay.
+        learning_rate: Adadelta's learning rate (torch's default 1.0; the paper names
+            Adadelta without its settings).
+        rho: Adadelta's decay (torch's default 0.9).
         checkpoint_every: batches between two checkpoints (0: none).
         classes: label values to train on; empty: every class present in the labels.
         tile_size_m: tile edge of the training scans' tile stores.
@@ -213,7 +219,7 @@ class PredictionConfig:
 
 @dataclass(frozen=True, slots=True)
 class CnnConfig:
-    """The whole baseline configuration (defaults: the paper's values)."""
+    """The whole baseline configuration (defaults: the paper's values where it gives them)."""
 
     preset: str = "paper"
     cubes: CubeConfig = field(default_factory=CubeConfig)
@@ -230,7 +236,7 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     "paper": {},
     "cpu-short": {"training": {"n_batches": 1500, "checkpoint_every": 500}},
 }
-"""Starting values of each preset (over the paper's); a file's own values win."""
+"""Starting values of each preset (over the defaults); a file's own values win."""
 
 
 def config_from_dict(data: dict[str, Any], *, source: str = "config") -> CnnConfig:

@@ -10,7 +10,8 @@ point ``p`` when::
 
 which is ``floor(f_q - f_p) + C/2`` computed without cancellation: the cube is the
 ``C^3`` block of voxels of edge ``v`` whose corner ``(0, 0, 0)`` lies ``C/2`` voxels
-below the point on each axis, as the paper has it. Only integers and comparisons of
+below the point on each axis: the cube centred on its point, as the paper's footnote on
+its cubes has it (Section 3.3). Only integers and comparisons of
 per-point fractions decide, each computed from one point's own coordinates, so a tile
 with a halo gives its points the very cubes the whole scan gives them.
 

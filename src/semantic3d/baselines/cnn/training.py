@@ -1,4 +1,6 @@
-"""Training DeepNet as the paper did: class-balanced batches of cubes generated on the fly.
+"""Training DeepNet on the paper's schedule: class-balanced batches of 100 points, a random
+rotation about z every 100 batches; the cubes are generated on the fly (ours: the paper
+does not say how it fed the network).
 
 Each labelled scan is spilled once into a temporary tile store. Training runs in *rounds*
 of ``rotate_every`` mini-batches: a round draws its ``rotate_every x batch_size`` points

@@ -4,7 +4,7 @@ Read by :mod:`semantic3d.core.config`: every section and key is optional, unknow
 or keys are rejected with the file, section and key named, types are checked strictly.
 TOML has no null: ``max_depth = "none"`` grows trees fully. A top-level ``preset`` picks
 the values of every key the file leaves out: ``"default"`` (the dataclass defaults) or
-``"paper"`` (Hackel et al. 2016 as published: :func:`preset_config`).
+``"paper"`` (the method as the semantic3D.net paper describes it: :func:`preset_config`).
 
 .. code-block:: toml
 
@@ -192,7 +192,8 @@ class GridSearchConfig:
 
     Attributes:
         select_forest: ``train`` runs the grid search first and fits the best parameters
-            (the paper's five-fold cross-validation; ``train --grid-search`` sets it);
+            (the paper's five-fold cross-validation, grouped by scan here;
+            ``train --grid-search`` sets it);
             they replace ``[forest]``'s and are recorded in the model file.
         n_splits: folds, grouped by scan (fewer when there are fewer training scans).
         scoring: scikit-learn scorer of the held-out folds' sample.
@@ -261,9 +262,10 @@ def preset_config(name: str) -> CovarianceConfig:
 
     - ``"default"``: the dataclass defaults, the configuration that cross-validated best
       on scans left out of training (docs/baseline_covariance.md);
-    - ``"paper"``: Hackel et al. (2016) as published: covariance and moment features of
+    - ``"paper"``: the method as Section 3.2 of the semantic3D.net paper describes it
+      (details from our reading of Hackel et al. 2016): covariance and moment features of
       the k nearest neighbours, height features of vertical cylinders only, the forest
-      chosen by a five-fold grid search grouped by scan, no context step.
+      chosen by a five-fold grid search (grouped by scan: ours), no context step.
     """
     if name == "default":
         return CovarianceConfig()

@@ -1,11 +1,12 @@
 """The paper's 2D image baseline: cube maps of each station, 2D segmentation, labels back to points.
 
 Scans are rendered onto the six faces of a cube around the scanner
-(:mod:`semantic3d.viz.cubemap`); the faces are segmented either as in the paper (dense
-texton, SIFT-like, ternary-pattern and self-similarity words, rectangle bag-of-words
+(:mod:`semantic3d.viz.cubemap`); the faces are segmented either after the paper's method
+(dense texton, DAISY, ternary-pattern and self-similarity words, rectangle bag-of-words
 features, boosting, superpixels and a CRF solved by graph cuts) or with a small U-Net
-(``[torch]``); every point takes the class of the pixel it projects to. See
-docs/baseline_image.md.
+(``[torch]``, not in the paper); every point takes the class of the pixel it projects to
+(a rule the paper does not describe). docs/baseline_image.md lists every difference from
+the paper.
 """
 
 from __future__ import annotations

@@ -1,7 +1,8 @@
 """Configuration of the image baseline: frozen dataclasses, loaded from one TOML file.
 
-``preset`` picks the defaults every other key overrides: ``"paper"`` follows the paper
-(512 words per descriptor, 200 rectangles, quick-shift superpixels at 3 settings),
+``preset`` picks the defaults every other key overrides: ``"paper"`` takes the paper's
+numbers (512 words per descriptor, 200 rectangles, superpixels at 3 settings) with
+quick-shift in place of its mean-shift, and our face size and classifier settings,
 ``"small"`` is a quick setting for trials and tests (16 words, felzenszwalb superpixels,
 small faces). Read by :mod:`semantic3d.core.config`: unknown keys are rejected and types
 are checked strictly.
@@ -151,8 +152,8 @@ class SuperpixelConfig:
     """Superpixels at coarse-to-fine settings (scikit-image).
 
     Attributes:
-        method: ``quickshift`` (mode seeking, the paper's mean-shift family), ``slic`` or
-            ``felzenszwalb``.
+        method: ``quickshift`` (mode seeking, of the family of the paper's mean-shift,
+            which scikit-image lacks), ``slic`` or ``felzenszwalb``.
         scales: one setting per level: quickshift kernel size, SLIC segment count or
             felzenszwalb scale.
     """

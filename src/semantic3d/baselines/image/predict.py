@@ -4,9 +4,9 @@
 (:func:`~semantic3d.baselines.common.predict_scan`: any format, labels in the input's point
 order, a run record beside them, nothing replaced unless asked) with the model bound to
 that station, and when asked writes ``FACES_DIR/NAME/<face>.png``: colour, ground truth
-(when the scan has labels) and prediction side by side, as in the paper's figure.
-:func:`predict_image_scans` labels many scans into a folder or a submission zip, as every
-baseline's ``predict`` does.
+(when the scan has labels) and prediction side by side (the paper's Figure 2 shows ground
+truth above prediction). :func:`predict_image_scans` labels many scans into a folder or a
+submission zip, as every baseline's ``predict`` does.
 """
 
 from __future__ import annotations

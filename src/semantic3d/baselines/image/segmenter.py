@@ -1,7 +1,9 @@
 """The paper's image classifier: words, rectangle features, boosting, superpixels, a CRF.
 
 :class:`BoostedSegmenter` follows associative hierarchical fields (Ladický et al.) in
-structure: dense texton, SIFT-like, ternary-pattern and self-similarity descriptors
+structure, with the differences docs/baseline_image.md lists (DAISY where the paper has
+SIFT; superpixel potentials from the pixels' posteriors, with no superpixel classifier of
+their own): dense texton, DAISY, ternary-pattern and self-similarity descriptors
 (:mod:`~semantic3d.baselines.image.features`), k-means words, rectangle bag-of-words
 features through integral images (:mod:`~semantic3d.baselines.image.words`), a boosted
 classifier (scikit-learn's HistGradientBoostingClassifier, class-balanced), and a CRF with

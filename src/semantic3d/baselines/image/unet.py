@@ -1,7 +1,8 @@
 """The modern variant: a small U-Net encoder-decoder on the same cube faces (``[torch]``).
 
-The paper names SegNet as the modern approach to image segmentation; this is the same
-family (an encoder of convolutions and down-sampling, a decoder of up-sampling, here with
+Not in the paper, whose image baseline is the hierarchical fields method; the paper names
+encoder-decoder networks such as SegNet as the modern approach to image segmentation
+(Section 3), and this is the same family (an encoder of convolutions and down-sampling, a decoder of up-sampling, here with
 U-Net's skip connections) at a size a CPU trains in minutes. Input channels: colour
 (0..1), whether the pixel shows a point, and the pixel's elevation angle (/ π/2), so the
 network knows where on the sphere it looks as the boosted variant does. Pixels without a

@@ -3,7 +3,7 @@
 Procedural scenes (:func:`build_scene`: village, street, square, railway) are made of
 exact-intersection primitives over a quadric terrain; a panoramic scanner on a tripod
 sweeps them (:func:`simulate_scan`), giving the properties the semantic3D paper stresses:
-density falling with range², occlusion shadows, long range, millimetre noise, smeared
+density falling with range², occlusion shadows, long range, little noise (millimetres here), smeared
 moving objects (scanning artefacts), and scans of hundreds of millions of points streamed
 in chunks. :func:`simulate` writes ``.txt`` / ``.labels`` files and a JSON sidecar.
 """

@@ -7,16 +7,15 @@ page as anonymous visitors see it are cached per challenge for ``leaderboard_cac
 seconds (and dropped at once when this process publishes a submission), so a popular
 board costs one query every few seconds.
 
-The boards of ``semantic-8`` and ``reduced-8`` also show the paper's published results
-(:mod:`semantic3d.server.references`): sorted in by mean IoU for comparison, marked as
-references and never ranked, so the ranks count participants only.
+The boards of ``semantic-8`` and ``reduced-8`` also show reference rows
+(:mod:`semantic3d.server.references`): every row of the semantic3D.net paper's tables and
+later published records, sorted in by what they have (:func:`merged_rows`), tagged and
+never ranked, so the ranks count participants only. Every row carries one tag
+(:data:`~semantic3d.server.references.TAGS`): participants' submissions are "verified".
 """
 
 from __future__ import annotations
 
-import csv
-import io
-import math
 import threading
 import time
 from collections.abc import Callable
@@ -29,14 +28,13 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from semantic3d.core.classes import CLASSES
 from semantic3d.server.models import ChallengeRecord, Submission, User
-from semantic3d.server.references import ReferenceResult, reference_results
-from semantic3d.server.schemas import (
-    ChallengeInfo,
-    ClassInfo,
-    Leaderboard,
-    LeaderboardRow,
+from semantic3d.server.references import (
+    TAG_VERIFIED,
+    ReferenceResult,
     ReferenceSource,
+    reference_results,
 )
+from semantic3d.server.schemas import ChallengeInfo, ClassInfo
 from semantic3d.server.services.challenges import (
     accepts_submissions,
     get_challenge,
@@ -47,13 +45,16 @@ from semantic3d.server.services.scores import stored_iou
 
 T = TypeVar("T")
 
+_NO_NOTES = ("",) * len(CLASSES)
+
 
 @dataclass(frozen=True, slots=True)
 class LeaderboardEntry:
     """One public row of a leaderboard: a participant's submission or a reference result.
 
     Reference rows (``reference=True``) have no rank, submission or date; their
-    ``submitted_by`` names the publication and ``paper_url`` links to it.
+    ``submitted_by`` names the publication, ``source`` is where their values were read and
+    ``reference_key`` names their method page.
     """
 
     rank: int | None
@@ -69,6 +70,20 @@ class LeaderboardEntry:
     paper_url: str
     code_url: str
     reference: bool = False
+    tag: str = TAG_VERIFIED
+    reference_key: str | None = None
+    source: ReferenceSource | None = None
+    iou_notes: tuple[str, ...] = _NO_NOTES
+    description: str = ""
+    note: str = ""
+    table: str = ""
+
+
+def method_page(challenge: str, entry: LeaderboardEntry) -> str:
+    """The path of ``entry``'s method page: a submission's page, or a reference's."""
+    if entry.reference:
+        return f"/challenges/{challenge}/references/{entry.reference_key}"
+    return f"/submissions/{entry.submission_id}"
 
 
 def reference_entry(result: ReferenceResult) -> LeaderboardEntry:
@@ -82,46 +97,66 @@ def reference_entry(result: ReferenceResult) -> LeaderboardEntry:
         overall_accuracy=result.overall_accuracy,
         iou=result.iou,
         runtime_s=result.runtime_s,
-        hardware=None,
+        hardware=result.hardware,
         submitted_at=None,
-        paper_url=result.source.url,
-        code_url="",
+        paper_url=result.paper_url,
+        code_url=result.code_url,
         reference=True,
+        tag=result.tag,
+        reference_key=result.key,
+        source=result.source,
+        iou_notes=result.iou_notes,
+        description=result.description,
+        note=result.note,
+        table=result.table,
     )
 
 
 def reference_entries(challenge: ChallengeRecord) -> list[LeaderboardEntry]:
-    """The reference rows of ``challenge`` (the paper's, for semantic-8 and reduced-8)."""
+    """The reference rows of ``challenge`` (semantic-8 and reduced-8 only), file order."""
     return [reference_entry(result) for result in reference_results().for_challenge(challenge.kind)]
 
 
 def merged_rows(
     entries: list[LeaderboardEntry], references: list[LeaderboardEntry]
 ) -> list[LeaderboardEntry]:
-    """Participants in rank order with the references sorted in by mean IoU.
+    """Participants in rank order with the references sorted in by what they have.
 
-    A reference goes below participants of equal mean IoU; references without a mean IoU
-    go last.
+    A reference with a mean IoU goes above the first row of a lower mean IoU (so below
+    participants of an equal one); one without goes by its overall accuracy among the rows
+    that have one; one with neither goes last. Rows lacking the compared value are passed
+    over, never pushed down: a row without a figure sorts by what it has.
     """
     rows = list(entries)
     for ref in sorted(references, key=_reference_order):
-        if ref.mean_iou is None:
-            rows.append(ref)
-            continue
-        at = len(rows)
-        for index, row in enumerate(rows):
-            if row.mean_iou is None or row.mean_iou < ref.mean_iou:
-                at = index
-                break
-        rows.insert(at, ref)
+        rows.insert(_position(rows, ref), ref)
     return rows
 
 
-def _reference_order(entry: LeaderboardEntry) -> tuple[float, float]:
-    return (
-        -(entry.mean_iou if entry.mean_iou is not None else -math.inf),
-        -(entry.overall_accuracy if entry.overall_accuracy is not None else -math.inf),
-    )
+def _position(rows: list[LeaderboardEntry], ref: LeaderboardEntry) -> int:
+    for value in (_mean_iou, _overall_accuracy):
+        own = value(ref)
+        if own is None:
+            continue
+        for index, row in enumerate(rows):
+            other = value(row)
+            if other is not None and other < own:
+                return index
+        return len(rows)
+    return len(rows)
+
+
+def _mean_iou(entry: LeaderboardEntry) -> float | None:
+    return entry.mean_iou
+
+
+def _overall_accuracy(entry: LeaderboardEntry) -> float | None:
+    return entry.overall_accuracy
+
+
+def _reference_order(entry: LeaderboardEntry) -> tuple[bool, float, bool, float]:
+    mean, accuracy = entry.mean_iou, entry.overall_accuracy
+    return (mean is None, -(mean or 0.0), accuracy is None, -(accuracy or 0.0))
 
 
 def challenge_info(challenge: ChallengeRecord) -> ChallengeInfo:
@@ -191,103 +226,6 @@ def leaderboard_entries(session: Session, challenge: ChallengeRecord) -> list[Le
     ]
 
 
-def leaderboard_row(entry: LeaderboardEntry) -> LeaderboardRow:
-    """The API's view of one row: ``iou`` keyed by label value."""
-    values = [str(c.value) for c in CLASSES]
-    return LeaderboardRow(
-        rank=entry.rank,
-        reference=entry.reference,
-        submission_id=entry.submission_id,
-        method=entry.method,
-        submitted_by=entry.submitted_by,
-        mean_iou=entry.mean_iou,
-        overall_accuracy=entry.overall_accuracy,
-        iou=dict(zip(values, entry.iou, strict=False)),
-        runtime_s=entry.runtime_s,
-        hardware=entry.hardware,
-        submitted_at=entry.submitted_at,
-        paper_url=entry.paper_url,
-        code_url=entry.code_url,
-    )
-
-
-def leaderboard(challenge: ChallengeRecord, entries: list[LeaderboardEntry]) -> Leaderboard:
-    """The API's view of a leaderboard: ranked ``entries``, apart the unranked ``references``.
-
-    Scores are fractions (0..1); ``iou`` maps label values to IoU (``null``: unknown, or
-    class absent); ``runtime_s`` is the run time T the authors report.
-    """
-    references = reference_entries(challenge)
-    source = reference_results().source
-    return Leaderboard(
-        challenge=challenge_info(challenge),
-        entries=[leaderboard_row(entry) for entry in entries],
-        references=[leaderboard_row(entry) for entry in references],
-        reference_source=(
-            ReferenceSource(citation=source.citation, url=source.url, label=source.label)
-            if references
-            else None
-        ),
-    )
-
-
-CSV_COLUMNS = (
-    "rank",
-    "kind",
-    "method",
-    "submitted_by",
-    "mean_iou",
-    "overall_accuracy",
-    *(f"iou_{c.name.replace('-', '_').replace(' ', '_')}" for c in CLASSES),
-    "runtime_s",
-    "hardware",
-    "submitted_at",
-    "paper_url",
-    "code_url",
-    "submission_id",
-)
-"""Header of the CSV export: one row per participant or reference, scores as fractions."""
-
-_FORMULA_START = ("=", "+", "-", "@", "\t", "\r")
-
-
-def _csv_text(value: str | None) -> str:
-    """Text for a spreadsheet cell; a leading formula character is neutralised with ``'``."""
-    if not value:
-        return ""
-    return f"'{value}" if value.startswith(_FORMULA_START) else value
-
-
-def _csv_number(value: float | int | None) -> str:
-    return "" if value is None else repr(value)
-
-
-def leaderboard_csv(challenge: ChallengeRecord, entries: list[LeaderboardEntry]) -> str:
-    """The board as CSV, in the order of the page (references sorted in, without rank)."""
-    buffer = io.StringIO()
-    writer = csv.writer(buffer, lineterminator="\r\n")
-    writer.writerow(CSV_COLUMNS)
-    for entry in merged_rows(entries, reference_entries(challenge)):
-        writer.writerow(
-            [
-                _csv_number(entry.rank),
-                "reference" if entry.reference else "participant",
-                _csv_text(entry.method),
-                _csv_text(entry.submitted_by),
-                _csv_number(entry.mean_iou),
-                _csv_number(entry.overall_accuracy),
-                *(_csv_number(value) for value in entry.iou),
-                _csv_number(entry.runtime_s),
-                _csv_text(entry.hardware),
-                entry.submitted_at.isoformat() if entry.submitted_at else "",
-                _csv_text(entry.paper_url),
-                _csv_text(entry.code_url),
-                _csv_number(entry.submission_id),
-            ]
-        )
-    return buffer.getvalue()
-
-
 class LeaderboardCache:
     """Leaderboards (rows, JSON bytes, anonymous HTML) per challenge, kept ``ttl_s`` seconds."""
 
@@ -331,6 +269,9 @@ class LeaderboardCache:
     def json_bytes(self, name: str) -> bytes:
         """The leaderboard of challenge ``name`` as JSON bytes (``NotFoundError`` if none)."""
 
+        # The export module builds on this one's rows, hence the import here.
+        from semantic3d.server.services.leaderboard_export import leaderboard
+
         def build() -> bytes:
             challenge, entries = self.board(name)
             return leaderboard(challenge, entries).model_dump_json().encode()
@@ -339,6 +280,8 @@ class LeaderboardCache:
 
     def csv_bytes(self, name: str) -> bytes:
         """The leaderboard of challenge ``name`` as UTF-8 CSV (``NotFoundError`` if none)."""
+
+        from semantic3d.server.services.leaderboard_export import leaderboard_csv
 
         def build() -> bytes:
             challenge, entries = self.board(name)

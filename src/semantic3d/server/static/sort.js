@@ -1,9 +1,13 @@
 // Sortable leaderboard columns: click (or Enter/Space on) a heading with data-sort.
-// Numbers sort by each cell's data-value (empty cells last, whatever the direction);
-// text by its content. A second click reverses the order. No dependencies.
+// A heading's data-column says which cell of a row it sorts by (headings grouped under
+// a colspan have another index in their own header row). Numbers sort by each cell's
+// data-value (empty cells last, whatever the direction); text by its content. A second
+// click reverses the order. No dependencies.
 "use strict";
 (function () {
   function cellKey(row, index, kind) {
+    // "position": the board's own order (ranks, with the unranked rows where they sort in).
+    if (kind === "position") return Number(row.dataset.position);
     const cell = row.cells[index];
     if (!cell) return null;
     if (kind === "number") {
@@ -17,11 +21,12 @@
   }
 
   function sortBy(table, header) {
-    const index = header.cellIndex;
+    const column = header.getAttribute("data-column");
+    const index = column === null ? header.cellIndex : Number(column);
     const kind = header.getAttribute("data-sort");
     const current = header.getAttribute("aria-sort");
     // Numbers start high-to-low (scores), text and the rank column A-to-Z / 1-to-n.
-    const startDescending = kind === "number" && index !== 0;
+    const startDescending = kind === "number";
     let descending = current ? current === "ascending" : startDescending;
     const body = table.tBodies[0];
     const rows = Array.from(body.rows);
@@ -33,7 +38,7 @@
         return x === null ? 1 : -1;
       }
       let order = 0;
-      if (kind === "number") order = x - y;
+      if (kind !== "text") order = x - y;
       else order = x.localeCompare(y);
       if (order === 0) return Number(a.dataset.position) - Number(b.dataset.position);
       return descending ? -order : order;
