@@ -60,6 +60,8 @@ on a GPU, ~250 MB on a CPU."""
 _QUERY_BLOCK = {"cuda": 2048, "cpu": 256}
 """Queries whose block columns are searched together (fewer, larger kernels on a GPU)."""
 _INT64_MAX = int(np.iinfo(np.int64).max)
+_FIRST_ROWS = FILTERED_ROWS  # a cell of at most FILTERED_ROWS rows is done in the first round
+_GROWTH = 4  # rows 8-32, 32-128, ...: fewer rounds than 2x, as few visits (measured)
 
 
 def compute_anchors(
@@ -261,12 +263,12 @@ class DevicePointCubes:
             wanted[filtered] &= possible
         row_start = self._row_starts[cell]
         n_rows = self._row_starts[cell + 1] - row_start
-        # Every cell's first rows (all the rows of a cell of at most FILTERED_ROWS).
-        begin = FILTERED_ROWS
+        # Every cell's first rows, then the next rows of the cells still missing a piece.
+        begin = _FIRST_ROWS
         found = self._scan_rows(split, row_start, torch.clamp(n_rows, max=begin))
         pending = torch.nonzero(((wanted & ~found) != 0) & (n_rows > begin)).view(-1)
         while pending.numel():  # the next rows of the cells with pieces still unfound
-            end = begin * 4
+            end = begin * _GROWTH
             length = torch.clamp(n_rows[pending] - begin, max=end - begin)
             found[pending] |= self._scan_rows(split[pending], row_start[pending] + begin, length)
             more = ((wanted[pending] & ~found[pending]) != 0) & (n_rows[pending] > end)
