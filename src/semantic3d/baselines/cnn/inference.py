@@ -4,14 +4,14 @@
   convolutions and the GPU's tensor cores want (1.5x on a CPU, ``docs/baseline_cnn.md``).
 - **Precision** (``[prediction] precision``). ``"auto"``: float16 weights and activations
   on a CUDA GPU (occupancy cubes, 0 or 1, are exact in it; half the bytes of float32 and
-  the tensor cores' rate), float32 on a CPU, where bfloat16 autocast was measured slower
-  than float32 on AVX2 cores without bfloat16 instructions and changes labels (0.4 % of
+  the tensor cores' rate), float32 on a CPU, where bfloat16 autocast was measured no
+  faster than float32 (AVX2 cores, and AVX-512/AMX ones) and changes labels (0.4 % of the
   points of an untrained network). A tile whose float16 logits are not all finite is
   labelled again in float32, so an overflow never decides a label. ``"float32"``: the
   reference arithmetic everywhere.
 - **Fusion** (``[prediction] compile``). ``torch.compile`` fuses each path's ReLU and
   pooling into the convolutions' epilogues and the element-wise casts away (3.3x on an
-  H100 for the eager float16 network; 1.46x per CPU second on 2 Zen 3 cores, same logits).
+  H100 for the eager float16 network; 1.2-1.5x per CPU second on 2 CPU cores, same logits).
   Compiling costs tens of seconds (~50 s on a busy 2-core CPU, ~8 s with a warm cache), so
   ``"auto"`` compiles once the points this process labels (counted over scans, plus the
   scan about to be labelled, :meth:`InferenceNetwork.expect`) pass

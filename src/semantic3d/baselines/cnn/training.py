@@ -309,7 +309,12 @@ class _Loop:
 
     def _step(self, cubes: Any, target: Any) -> tuple[Any, Any]:
         self.optimizer.zero_grad(set_to_none=True)
-        with torch.autocast("cuda", dtype=torch.bfloat16, enabled=self.autocast):
+        mixed = (
+            torch.autocast("cuda", dtype=torch.bfloat16)
+            if self.autocast
+            else contextlib.nullcontext()
+        )
+        with mixed:
             logits = self.network(cubes)
             loss = self.loss_fn(logits.float(), target)
         loss.backward()
