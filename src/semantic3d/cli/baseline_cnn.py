@@ -6,8 +6,12 @@ a progress bar, print a summary. torch is imported when a command runs.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
+import signal
+import threading
+from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -73,8 +77,18 @@ def _config(path: Path | None, seed: int | None, batches: int | None) -> CnnConf
 
 def _training_bar(bar: Any, task: Any) -> Any:
     def update(state: Any) -> None:
-        if state.stage == "cubes":
-            bar.update(task, description="generating the round's cubes", total=state.n_batches)
+        if state.stage == "cubes":  # training waits for a round's cubes
+            made = (
+                f": {state.cube_points:,} of {state.cube_points_total:,} points"
+                if state.cube_points_total
+                else ""
+            )
+            bar.update(
+                task,
+                completed=state.batch,
+                total=state.n_batches,
+                description=f"batch {state.batch}: making the next round's cubes{made}",
+            )
             return
         bar.update(
             task,
@@ -106,9 +120,9 @@ def train(
 ) -> None:
     """Train DeepNet on labelled scans (class-balanced batches) and save the model.
 
-    Writes OUT.checkpoint every [training] checkpoint_every batches; --resume continues
-    from it with the same configuration and scans (the model is the one an uninterrupted
-    run gives). The checkpoint is removed once the model is saved.
+    Writes OUT.checkpoint every [training] checkpoint_every batches and on Ctrl-C; --resume
+    continues from it with the same configuration and scans (the model is the one an
+    uninterrupted run gives). The checkpoint is removed once the model is saved.
     """
     with guarded():
         refuse_existing([out], overwrite=overwrite)
@@ -117,30 +131,76 @@ def train(
             refuse_existing([checkpoint], overwrite=overwrite)
         from semantic3d.baselines.cnn.network import count_parameters
         from semantic3d.baselines.cnn.persistence import save_model
-        from semantic3d.baselines.cnn.training import train_cnn_model
+        from semantic3d.baselines.cnn.training import TrainingInterrupted, train_cnn_model
         from semantic3d.baselines.common.scans import find_labelled_scans
 
         config = _config(config_path, seed, batches)
+        scheduled = _config(config_path, seed, None).training.n_batches
+        short = _short_run(config.training.n_batches, scheduled)
         labelled = find_labelled_scans(data, names=scan_names(scans))
-        with progress_bar() as bar:
-            task = bar.add_task("tiling the training scans", total=config.training.n_batches)
-            model = train_cnn_model(
-                labelled,
-                config=config,
-                device=device.value,
-                checkpoint=checkpoint,
-                resume=resume,
-                workdir=workdir,
-                progress=_training_bar(bar, task),
+        if short:
+            ui.console.print(short, highlight=False)
+        stop = threading.Event()
+        try:
+            with progress_bar() as bar, _stop_on_ctrl_c(stop):
+                task = bar.add_task("tiling the training scans", total=config.training.n_batches)
+                model = train_cnn_model(
+                    labelled,
+                    config=config,
+                    device=device.value,
+                    checkpoint=checkpoint,
+                    resume=resume,
+                    workdir=workdir,
+                    progress=_training_bar(bar, task),
+                    stop=stop,
+                )
+        except TrainingInterrupted as stopped:
+            ui.console.print(
+                f"interrupted after {stopped.batch} batches; checkpoint "
+                f"{escape(str(checkpoint))}: continue with --resume",
+                highlight=False,
             )
+            raise typer.Exit(130) from None
         save_model(model, out)
         checkpoint.unlink(missing_ok=True)
         ui.console.print(
             f"trained on {plural(len(labelled), 'scan')}, {model.n_batches_trained} batches of "
-            f"{config.training.batch_size} in {model.training_time_s:.1f} s; "
-            f"{count_parameters(model.network):,} parameters; saved {escape(str(out))}",
+            f"{config.training.batch_size}{' (a short run)' if short else ''} in "
+            f"{model.training_time_s:.1f} s; {count_parameters(model.network):,} parameters; "
+            f"saved {escape(str(out))}",
             highlight=False,
         )
+
+
+def _short_run(n_batches: int, scheduled: int) -> str:
+    """The line saying a ``--batches`` run is shorter than its schedule ('' if it is not)."""
+    if n_batches >= scheduled:
+        return ""
+    return (
+        f"a short run: {n_batches:,} batches of the configuration's {scheduled:,} "
+        f"(the paper trains 74,700); the model is not the schedule's"
+    )
+
+
+@contextlib.contextmanager
+def _stop_on_ctrl_c(stop: threading.Event) -> Iterator[None]:
+    """The first Ctrl-C sets ``stop`` (training ends after its batch with a checkpoint),
+    a second one interrupts at once. Only the main thread can take signals; elsewhere
+    Ctrl-C keeps its default."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handle(signum: int, frame: object) -> None:
+        if stop.is_set():
+            raise KeyboardInterrupt
+        stop.set()
+
+    previous = signal.signal(signal.SIGINT, handle)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 @cnn_app.command()

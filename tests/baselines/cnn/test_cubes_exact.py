@@ -263,5 +263,5 @@ def test_cuda_prediction_of_point_centred_cubes_agrees_with_the_cpu(cnn_scans: P
         pytest.skip("no CUDA device")
     cloud = read_points(cnn_scans / "test.txt")
     on_cpu = _untrained(POINT).label_cloud(cloud)
-    on_gpu = _untrained(POINT).to("cuda").label_cloud(cloud)  # CPU cubes, GPU network
+    on_gpu = _untrained(POINT).to("cuda").label_cloud(cloud)  # GPU cubes, float16 network
     assert np.mean(on_gpu == on_cpu) > 0.99

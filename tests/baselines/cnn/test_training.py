@@ -1,16 +1,29 @@
-"""Training: the loss falls, the same seed gives the same model, resuming gives it too."""
+"""Training: the loss falls, the same seed gives the same model (rounds made by a producer
+thread ahead of the steps), stopping and resuming gives it too."""
 
 from __future__ import annotations
 
+import concurrent.futures
+import contextlib
 import dataclasses
 import shutil
+import threading
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
-from semantic3d.baselines.cnn.training import CheckpointError, train_cnn_model
+from semantic3d.baselines.cnn import rounds
+from semantic3d.baselines.cnn.cubes import build_occupancy
+from semantic3d.baselines.cnn.rounds import make_round
+from semantic3d.baselines.cnn.training import (
+    CheckpointError,
+    TrainingInterrupted,
+    TrainingProgress,
+    _tile_scan,
+    train_cnn_model,
+)
 from semantic3d.baselines.common.scans import TrainingDataError, find_labelled_scans
 from tests.baselines.cnn.conftest import TINY, TrainingRun, make_scene
 from tests.baselines.conftest import write_scan
@@ -78,3 +91,87 @@ def test_cross_validation_holds_out_each_scan_once(cnn_scans: Path) -> None:
     assert result.scores.n_points == 400
     with pytest.raises(TrainingDataError, match=r"expected 2\.\.2 folds for 2 scans, found 3"):
         scan_folds(["a", "b"], 3)
+
+
+def test_stopping_writes_a_checkpoint_and_resuming_gives_the_uninterrupted_model(
+    training_run: TrainingRun, cnn_scans: Path, tmp_path: Path
+) -> None:
+    scans = find_labelled_scans(cnn_scans, names=["train"])
+    checkpoint = tmp_path / "run.checkpoint"
+    stop = threading.Event()
+
+    def progress(state: TrainingProgress) -> None:
+        if state.batch == 7:  # Ctrl-C in the middle of round 0 (batches 0-9)
+            stop.set()
+
+    with pytest.raises(TrainingInterrupted) as stopped:
+        train_cnn_model(scans, config=TINY, checkpoint=checkpoint, progress=progress, stop=stop)
+    assert stopped.value.batch == 7 and stopped.value.checkpoint == checkpoint
+    assert torch.load(checkpoint, weights_only=True)["batch"] == 7
+    resumed = train_cnn_model(scans, config=TINY, checkpoint=checkpoint, resume=True)
+    assert _same_weights(resumed.network.state_dict(), training_run.model.network.state_dict())
+    stop.set()  # before the first round's cubes: a checkpoint of no batch
+    with pytest.raises(TrainingInterrupted, match="stopped after 0 batches"):
+        train_cnn_model(scans, config=TINY, checkpoint=tmp_path / "zero", stop=stop)
+    assert torch.load(tmp_path / "zero", weights_only=True)["batch"] == 0
+
+
+@pytest.mark.parametrize("centring", ["point", "corner"])
+def test_cropped_tiles_give_a_round_the_cubes_of_whole_tiles(
+    cnn_scans: Path, centring: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    small = dataclasses.replace(TINY.cubes, voxel_sizes_m=(0.05, 0.1, 0.2), centring=centring)
+    config = dataclasses.replace(TINY, cubes=small)  # blocks of 1.6 m in 8 m tiles
+    voxelised: list[int] = []
+
+    def counting(xyz: np.ndarray, **options: object) -> object:
+        voxelised.append(len(xyz))
+        return build_occupancy(xyz, **options)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(rounds, "build_occupancy", counting)
+    scans = find_labelled_scans(cnn_scans)
+    with contextlib.ExitStack() as stack:
+        tiled = [stack.enter_context(_tile_scan(scan, config, None)) for scan in scans]
+        pool = stack.enter_context(concurrent.futures.ThreadPoolExecutor(2))
+        for index in (0, 1):
+            whole = make_round(tiled, [1, 3, 5, 8], config, index, 2, device="cpu", crop=False)
+            points_whole = sum(voxelised)
+            voxelised.clear()
+            cropped = make_round(tiled, [1, 3, 5, 8], config, index, 2, device="cpu", pool=pool)
+            assert sum(voxelised) < points_whole / 2  # the crop leaves most points out
+            voxelised.clear()
+            assert torch.equal(cropped.packed, whole.packed) and cropped.packed.any()
+            assert torch.equal(cropped.targets, whole.targets)
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_cuda_training_is_deterministic_and_resumes_to_the_uninterrupted_model(
+    cnn_scans: Path, tmp_path: Path
+) -> None:
+    scans = find_labelled_scans(cnn_scans, names=["train"])
+    config = dataclasses.replace(TINY, training=dataclasses.replace(TINY.training, n_batches=20))
+    first = train_cnn_model(scans, config=config, device="cuda")  # rounds made on the GPU
+    again = train_cnn_model(scans, config=config, device="cuda", report_every=3)
+    assert _same_weights(first.network.state_dict(), again.network.state_dict())
+    stop = threading.Event()
+
+    def progress(state: TrainingProgress) -> None:
+        if state.batch >= 13:
+            stop.set()
+
+    checkpoint = tmp_path / "cuda.checkpoint"
+    with pytest.raises(TrainingInterrupted):
+        train_cnn_model(
+            scans,
+            config=config,
+            device="cuda",
+            checkpoint=checkpoint,
+            progress=progress,
+            stop=stop,
+            report_every=1,
+        )
+    resumed = train_cnn_model(
+        scans, config=config, device="cuda", checkpoint=checkpoint, resume=True
+    )
+    assert _same_weights(resumed.network.state_dict(), first.network.state_dict())

@@ -32,6 +32,9 @@ training schedule short enough for a CPU (and says so in every model it trains).
     [prediction]
     tile_size_m = 25.6
     batch_size = 256
+    device_batch_size = 4096
+    precision = "auto"
+    compile = "auto"
 """
 
 from __future__ import annotations
@@ -49,6 +52,8 @@ from semantic3d.core.errors import ConfigError
 
 __all__ = [
     "CENTRINGS",
+    "COMPILE_CHOICES",
+    "PRECISIONS",
     "PRESETS",
     "CnnConfig",
     "CubeConfig",
@@ -64,6 +69,15 @@ __all__ = [
 CENTRINGS: tuple[str, ...] = ("point", "corner")
 """How a cube sits on its point: ``"point"`` exactly centred (the paper);
 ``"corner"`` the block of the scan's grid around the grid corner nearest the point."""
+
+
+PRECISIONS: tuple[str, ...] = ("auto", "float32")
+"""Arithmetic of the network when labelling: ``"auto"`` float16 on a CUDA GPU (float32 on a
+CPU, where bfloat16 is slower and changes labels), ``"float32"`` everywhere."""
+
+COMPILE_CHOICES: tuple[str, ...] = ("auto", "always", "never")
+"""``torch.compile`` of the network when labelling: ``"auto"`` once the points to label
+make up for the compilation (see :mod:`~semantic3d.baselines.cnn.inference`)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -160,6 +174,8 @@ class TrainingConfig:
         classes: label values to train on; empty: every class present in the labels.
         tile_size_m: tile edge of the training scans' tile stores.
         seed: seed of sampling, rotations, initial weights and dropout.
+        autocast: train under bfloat16 autocast on a CUDA GPU that has it (ignored on a
+            CPU, where training is float32).
     """
 
     batch_size: int = 100
@@ -171,6 +187,7 @@ class TrainingConfig:
     classes: tuple[int, ...] = ()
     tile_size_m: float = 25.6
     seed: int = 0
+    autocast: bool = True
 
     def __post_init__(self) -> None:
         _check_positive("batch_size", self.batch_size)
@@ -199,22 +216,38 @@ class PredictionConfig:
 
     Attributes:
         tile_size_m: tile edge; each tile is read with a halo of the cubes' reach.
-        batch_size: points per network call.
+        batch_size: points per network call on a CPU.
+        device_batch_size: points per network call on a GPU (thousands fill the card).
         chunk_size: points per chunk read from the scan.
         deduplicate: classify each distinct set of cubes once (points whose cubes are
             identical get the same label; the labels are those of per-point prediction).
+        precision: ``"auto"`` (float16 on a GPU, float32 on a CPU) or ``"float32"``.
+        compile: ``torch.compile`` the network: ``"auto"`` (once the points to label pay
+            for it), ``"always"`` or ``"never"``; a failed compilation runs eagerly.
     """
 
     tile_size_m: float = 25.6
     batch_size: int = 256
+    device_batch_size: int = 4096
     chunk_size: int = 1 << 20
     deduplicate: bool = True
+    precision: str = "auto"
+    compile: str = "auto"
 
     def __post_init__(self) -> None:
         if not self.tile_size_m > 0:
             raise ConfigError(f"tile_size_m: expected > 0, found {self.tile_size_m}")
         _check_positive("batch_size", self.batch_size)
+        _check_positive("device_batch_size", self.device_batch_size)
         _check_positive("chunk_size", self.chunk_size)
+        if self.precision not in PRECISIONS:
+            raise ConfigError(
+                f"precision: expected one of {list(PRECISIONS)}, found {self.precision!r}"
+            )
+        if self.compile not in COMPILE_CHOICES:
+            raise ConfigError(
+                f"compile: expected one of {list(COMPILE_CHOICES)}, found {self.compile!r}"
+            )
 
 
 @dataclass(frozen=True, slots=True)

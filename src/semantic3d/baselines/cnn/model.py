@@ -8,16 +8,18 @@ consumes them. Memory is bounded by a tile and a batch, whatever the scan's size
 labels are those of the whole scan in memory (tested), because every cell and corner is
 computed from float64 coordinates relative to one grid origin for the whole scan.
 
-On a CUDA device the network runs channels-last under bf16 autocast, and the next tile is
-read and voxelised on the host while the GPU works on the current one. Corner-centred
-cubes are filled on the GPU (:mod:`.cubes_torch`); point-centred ones (the default) by
-the compiled CPU kernel of :mod:`.point_cubes`, then sent to the device.
+Three things overlap: the next tile is read and voxelised in a thread while the current
+one is labelled, and inside a tile the next batches' cubes are made by a producer thread
+while the network classifies (:mod:`.labelling`). On a CUDA device the cubes are born on
+the device (:mod:`.point_cubes_torch`, :mod:`.cubes_torch`) and the network runs in
+float16, channels-last, compiled once the work pays for it (:mod:`.inference`).
 """
 
 from __future__ import annotations
 
 import concurrent.futures
 import logging
+import threading
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from itertools import chain
@@ -28,13 +30,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from semantic3d.baselines.cnn.config import CnnConfig
-from semantic3d.baselines.cnn.cubes import (
-    Occupancy,
-    build_occupancy,
-    compute_corner_cells,
-    compute_cubes,
-    fill_cubes,
-)
+from semantic3d.baselines.cnn.cubes import Occupancy, build_occupancy, compute_corner_cells
+from semantic3d.baselines.cnn.inference import InferenceNetwork
+from semantic3d.baselines.cnn.labelling import label_tile_points
 from semantic3d.baselines.common.prediction import LabelledBlock
 from semantic3d.core.classes import N_CLASSES
 from semantic3d.core.errors import Semantic3DError, require
@@ -116,6 +114,19 @@ class CnnModel:
         mask = torch.full((N_CLASSES,), float("-inf"))
         mask[[v - 1 for v in self.label_values]] = 0.0
         self._logit_mask = mask
+        self._inference: InferenceNetwork | None = None
+        self._inference_lock = threading.Lock()
+
+    def __getstate__(self) -> dict[str, Any]:
+        """Pickled (for Dask workers) without its labelling form, made again there."""
+        state = dict(self.__dict__)
+        state["_inference"] = None
+        del state["_inference_lock"]
+        return state
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        self._inference_lock = threading.Lock()
 
     @property
     def training_scans(self) -> tuple[str, ...]:
@@ -132,7 +143,26 @@ class CnnModel:
         self.device = resolve_device(str(device))
         self.network.to(self.device, memory_format=torch.channels_last_3d)
         self._logit_mask = self._logit_mask.to(self.device)
+        self._inference = None
         return self
+
+    @property
+    def inference(self) -> InferenceNetwork:
+        """The network's labelling form on :attr:`device` (made once, kept: a compiled
+        network is compiled once per process, not per scan)."""
+        with self._inference_lock:
+            if self._inference is None or self._inference.device != self.device:
+                prediction = self.config.prediction
+                cuda = self.device.type == "cuda"
+                self._inference = InferenceNetwork(
+                    self.network,
+                    device=self.device,
+                    precision=prediction.precision,
+                    compile=prediction.compile,
+                    batch_size=prediction.device_batch_size if cuda else prediction.batch_size,
+                    logit_mask=self._logit_mask,
+                )
+            return self._inference
 
     # -- labelling ------------------------------------------------------------------------
     def classify_cubes(self, cubes: Any) -> NDArray[np.uint8]:
@@ -140,14 +170,14 @@ class CnnModel:
         tensor = torch.as_tensor(cubes, device=self.device)
         if tensor.shape[0] == 0:
             return np.empty(0, np.uint8)
-        with torch.inference_mode():
-            if self.device.type == "cuda":
-                with torch.autocast("cuda", dtype=torch.bfloat16):
-                    logits = self.network(tensor)
-            else:
-                logits = self.network(tensor)
-            index = torch.argmax(logits.float() + self._logit_mask, dim=1)
-        labels: NDArray[np.uint8] = (index.cpu().numpy() + 1).astype(np.uint8)
+        inference = self.inference
+        parts = []
+        for begin in range(0, tensor.shape[0], inference.batch_size):
+            index, _ = inference.classify(
+                tensor[begin : begin + inference.batch_size], precise=True
+            )
+            parts.append(index)
+        labels: NDArray[np.uint8] = (torch.cat(parts).cpu().numpy() + 1).astype(np.uint8)
         return labels
 
     def label_points(self, xyz: NDArray[np.float64], occupancy: Occupancy) -> NDArray[np.uint8]:
@@ -157,71 +187,36 @@ class CnnModel:
         once: the same corner cell at every scale (corner centring), the same coordinates
         (point centring).
         """
-        cubes = self.config.cubes
-        if cubes.centring == "point":
-            return self._label_point_centred(np.asarray(xyz, dtype=np.float64), occupancy)
-        corners = compute_corner_cells(
-            xyz,
-            origin=occupancy.origin,
-            voxel_sizes_m=cubes.voxel_sizes_m,
-            cube_voxels=cubes.cube_voxels,
-        )
-        inverse: NDArray[np.int64] | None = None
-        if self.config.prediction.deduplicate and corners.shape[0] > 1:
-            keys = np.stack([pack_keys(corners[:, s]) for s in range(corners.shape[1])], axis=1)
-            _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
-            corners = corners[first]
-            inverse = inverse.reshape(-1)
-        labels = self._label_corners(corners, occupancy)
+        xyz = np.asarray(xyz, dtype=np.float64)
+        first, inverse = self._distinct(xyz, occupancy)
+        distinct = xyz if first is None else xyz[first]
+        index = label_tile_points(self.inference, distinct, occupancy, cubes=self.config.cubes)
+        labels = (index + 1).astype(np.uint8)
         return labels if inverse is None else labels[inverse]
 
-    def _label_point_centred(
+    def _distinct(
         self, xyz: NDArray[np.float64], occupancy: Occupancy
-    ) -> NDArray[np.uint8]:
+    ) -> tuple[NDArray[np.int64] | None, NDArray[np.int64] | None]:
+        """Rows of the points whose cubes are distinct (in their first order) and each
+        point's row among them; ``(None, None)`` when every point is classified."""
+        if not self.config.prediction.deduplicate or xyz.shape[0] < 2:
+            return None, None
         cubes = self.config.cubes
-        inverse: NDArray[np.int64] | None = None
-        if self.config.prediction.deduplicate and xyz.shape[0] > 1:
-            _, first, inverse = np.unique(xyz, axis=0, return_index=True, return_inverse=True)
-            xyz = xyz[np.sort(first)]  # distinct points, in their first order
-            rank = np.empty(first.size, np.int64)
-            rank[np.argsort(first)] = np.arange(first.size)
-            inverse = rank[inverse.reshape(-1)]
-        batch = self.config.prediction.batch_size
-        size = cubes.cube_voxels
-        n = xyz.shape[0]
-        out = np.empty(n, np.uint8)
-        buffer = np.empty((min(batch, n), cubes.n_scales, size, size, size), np.float32)
-        for begin in range(0, n, batch):
-            part = xyz[begin : begin + batch]
-            filled = compute_cubes(
-                occupancy, part, cube_voxels=size, centring="point", out=buffer[: part.shape[0]]
+        if cubes.centring == "point":
+            identity = xyz
+        else:
+            corners = compute_corner_cells(
+                xyz,
+                origin=occupancy.origin,
+                voxel_sizes_m=cubes.voxel_sizes_m,
+                cube_voxels=cubes.cube_voxels,
             )
-            # On a GPU too: the cubes are filled here and sent (see the module docstring).
-            out[begin : begin + part.shape[0]] = self.classify_cubes(torch.from_numpy(filled))
-        return out if inverse is None else out[inverse]
-
-    def _label_corners(self, corners: NDArray[np.int64], occupancy: Occupancy) -> NDArray[np.uint8]:
-        cubes = self.config.cubes
-        batch = self.config.prediction.batch_size
-        n = corners.shape[0]
-        out = np.empty(n, np.uint8)
-        if self.device.type == "cuda":
-            from semantic3d.baselines.cnn.cubes_torch import DeviceOccupancy
-
-            on_device = DeviceOccupancy(
-                occupancy, device=self.device, cube_voxels=cubes.cube_voxels
-            )
-            for begin in range(0, n, batch):
-                filled = on_device.fill(corners[begin : begin + batch])
-                out[begin : begin + batch] = self.classify_cubes(filled)
-            return out
-        size = cubes.cube_voxels
-        buffer = np.empty((min(batch, n), cubes.n_scales, size, size, size), np.float32)
-        for begin in range(0, n, batch):
-            part = corners[begin : begin + batch]
-            filled = fill_cubes(occupancy, part, cube_voxels=size, out=buffer[: part.shape[0]])
-            out[begin : begin + part.shape[0]] = self.classify_cubes(torch.from_numpy(filled))
-        return out
+            identity = np.stack([pack_keys(corners[:, s]) for s in range(corners.shape[1])], axis=1)
+        _, first, inverse = np.unique(identity, axis=0, return_index=True, return_inverse=True)
+        order = np.sort(first)
+        rank = np.empty(first.size, np.int64)
+        rank[np.argsort(first)] = np.arange(first.size)
+        return order, rank[inverse.reshape(-1)]
 
     def label_cloud(self, cloud: PointCloud) -> NDArray[np.uint8]:
         """Label values of every point of an in-memory cloud (no tiling)."""
@@ -273,6 +268,7 @@ class CnnModel:
         bare = (PointCloud(c.xyz, c.intensity, c.rgb, None) for c in chain([first], stream))
         with TemporaryTileStore(bare, grid=grid, workdir=workdir / "tiles") as store:
             tiled = len(store.tiles) > 1
+            self.inference.expect(store.n_points if select is None else select.size)
             for tile in _prefetched(store, store.tiles, origin, self, select):
                 labels = self.label_points(tile.xyz, tile.occupancy)
                 yield LabelledBlock(tile.indices, labels, store.n_points, tiled=tiled)

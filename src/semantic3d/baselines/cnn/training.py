@@ -3,68 +3,93 @@ rotation about z every 100 batches; the cubes are generated on the fly (ours: th
 does not say how it fed the network).
 
 Each labelled scan is spilled once into a temporary tile store. Training runs in *rounds*
-of ``rotate_every`` mini-batches: a round draws its ``rotate_every x batch_size`` points
-(every batch class-balanced: the classes take turns over its slots, and each slot is a
-point of its class drawn uniformly over all scans), draws one rotation about z, reads
-each tile holding drawn points with its halo, rotates it about the tile's centre and fills
-the drawn points' cubes (kept bit-packed, 2.5 kB a point). Its batches then go through
-Adadelta and the cross-entropy loss. The scans' cubes are never all held.
+of ``rotate_every`` mini-batches, each with its own draw of points and rotation about z
+(:mod:`.rounds`); a producer thread (:class:`~.pipeline.Prefetched`) makes round
+``r + 1``'s cubes (a thread pool of tiles, numba on all cores, or the GPU's kernels) while
+round ``r`` trains, so after the first round the network rarely waits for its input.
+Adadelta and the cross-entropy loss; on a CUDA device under bfloat16 autocast
+(``[training] autocast``) with deterministic cuDNN algorithms. The loss and the confusion
+of the round are summed on the device and read every ``report_every`` batches (every
+batch on a CPU, where reading costs nothing), the only waits for the device.
 
 Everything random comes from the seed: round ``r`` draws from ``numpy.random.default_rng
-((seed, r))`` and the weights and dropout from torch's generator, whose state is saved in
-every checkpoint. The same seed on the same device gives the same model, and a run
-resumed from a checkpoint gives the model of the run that was not interrupted (tested).
+((seed, r))`` and the weights and dropout from torch's generators, whose states are saved
+in every checkpoint. The same seed on the same device gives the same model, however the
+producer runs ahead, and a run resumed from a checkpoint gives the model of the run that
+was not interrupted (tested). ``stop`` (an event: the CLI sets it on Ctrl-C) ends the run
+after the current batch with a checkpoint and :class:`TrainingInterrupted`.
 """
 
 from __future__ import annotations
 
+import concurrent.futures
 import contextlib
 import logging
 import math
+import os
+import threading
 import time
 import uuid
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import numpy as np
 from numpy.typing import NDArray
 
 from semantic3d import __version__
 from semantic3d.baselines.cnn.config import CnnConfig, config_to_dict
-from semantic3d.baselines.cnn.cubes import build_occupancy, compute_cubes
 from semantic3d.baselines.cnn.model import CnnModel, resolve_device
 from semantic3d.baselines.cnn.network import build_network
+from semantic3d.baselines.cnn.pipeline import Prefetched
+from semantic3d.baselines.cnn.point_cubes_torch import unpack_cubes
+from semantic3d.baselines.cnn.rounds import Round, RoundProgress, TiledScan, make_round
 from semantic3d.baselines.common.scans import LabelledScan, TrainingDataError
 from semantic3d.core.classes import N_CLASSES, class_by_value
 from semantic3d.core.errors import Semantic3DError, require
-from semantic3d.spatial.grid import TileGrid, TileKey
-from semantic3d.spatial.store import TemporaryTileStore, TileStore
+from semantic3d.spatial.grid import TileGrid
+from semantic3d.spatial.store import TemporaryTileStore
 
 torch: Any = require("torch", "torch")
 
-__all__ = ["CheckpointError", "TrainingProgress", "train_cnn_model"]
+__all__ = ["CheckpointError", "TrainingInterrupted", "TrainingProgress", "train_cnn_model"]
 
 logger = logging.getLogger(__name__)
 
 _CHECKPOINT_FORMAT = 1
+_REPORT_EVERY = {"cpu": 1, "cuda": 25}
+"""Batches between two reads of the loss (each read waits for the device)."""
+_WAIT_POLL_S = 0.25
 
 
 class CheckpointError(Semantic3DError, ValueError):
     """A checkpoint cannot resume this run (another configuration, other scans, corrupt)."""
 
 
+class TrainingInterrupted(KeyboardInterrupt):
+    """Training stopped on request (``stop``, Ctrl-C at the CLI) after ``batch`` batches;
+    ``checkpoint`` (when given) holds them, and ``resume`` continues from it."""
+
+    def __init__(self, batch: int, checkpoint: Path | None) -> None:
+        where = f"; checkpoint {checkpoint}" if checkpoint is not None else ""
+        super().__init__(f"training stopped after {batch} batches{where}")
+        self.batch = batch
+        self.checkpoint = checkpoint
+
+
 @dataclass(frozen=True, slots=True)
 class TrainingProgress:
-    """Where a training run stands, after each mini-batch.
+    """Where a training run stands.
 
     Attributes:
         batch: mini-batches done.
         n_batches: mini-batches of the run.
         loss: mean cross-entropy of the current round's batches so far.
         balanced_accuracy: mean per-class recall on the current round's batches so far.
-        stage: ``"cubes"`` while a round's cubes are generated, else ``"train"``.
+        stage: ``"cubes"`` while training waits for a round's cubes, else ``"train"``.
+        cube_points: while waiting, points of that round whose cubes are done.
+        cube_points_total: while waiting, points of that round.
     """
 
     batch: int
@@ -72,17 +97,11 @@ class TrainingProgress:
     loss: float
     balanced_accuracy: float
     stage: str = "train"
+    cube_points: int = 0
+    cube_points_total: int = 0
 
 
 Progress = Callable[[TrainingProgress], None]
-
-
-@dataclass(slots=True)
-class _Scan:
-    name: str
-    store: TileStore
-    tiles: tuple[TileKey, ...]
-    counts: NDArray[np.int64]  # (n_tiles, N_CLASSES + 1) points per tile and label value
 
 
 def train_cnn_model(
@@ -94,6 +113,8 @@ def train_cnn_model(
     resume: bool = False,
     workdir: str | Path | None = None,
     progress: Progress | None = None,
+    stop: threading.Event | None = None,
+    report_every: int | None = None,
 ) -> CnnModel:
     """Train DeepNet on labelled scans with ``config.training``'s schedule.
 
@@ -101,15 +122,21 @@ def train_cnn_model(
         scans: the labelled scans.
         config: the configuration (``training.n_batches`` sets the length of the run).
         device: ``cpu`` or ``cuda``.
-        checkpoint: file to write every ``training.checkpoint_every`` batches (and to
-            resume from).
+        checkpoint: file to write every ``training.checkpoint_every`` batches and when
+            stopped (and to resume from).
         resume: continue from ``checkpoint`` (which must exist and match this run).
         workdir: scratch folder for the scans' tile stores (removed afterwards).
-        progress: called after every batch.
+        progress: called every ``report_every`` batches, at the end of each round, and
+            while training waits for a round's cubes.
+        stop: when set, the run ends after the current batch: a checkpoint is written and
+            :class:`TrainingInterrupted` raised.
+        report_every: batches between two progress reports (default: 1 on a CPU, 25 on
+            a GPU, where each report waits for the device).
 
     Raises:
         TrainingDataError: no scan, fewer than two classes, a listed class without points.
         CheckpointError: ``resume`` without a usable checkpoint.
+        TrainingInterrupted: ``stop`` was set.
     """
     started = time.perf_counter()
     if not scans:
@@ -117,6 +144,7 @@ def train_cnn_model(
     if resume and (checkpoint is None or not Path(checkpoint).is_file()):
         raise CheckpointError(f"{checkpoint}: expected a checkpoint to resume from, found none")
     torch_device = resolve_device(device)
+    cuda = torch_device.type == "cuda"
     training = config.training
     torch.manual_seed(training.seed)
     network = build_network(config.cubes, config.network)
@@ -125,57 +153,52 @@ def train_cnn_model(
         network.parameters(), lr=training.learning_rate, rho=training.rho
     )
     names = tuple(s.name for s in scans)
+    path = None if checkpoint is None else Path(checkpoint)
     done = 0
-    if resume and checkpoint is not None:  # checked above: resume needs the file
-        done = _load_checkpoint(Path(checkpoint), network, optimizer, config=config, scans=names)
-    loss_fn = torch.nn.CrossEntropyLoss()
+    if resume and path is not None:  # checked above: resume needs the file
+        done = _load_checkpoint(path, network, optimizer, config=config, scans=names)
+    every = report_every or _REPORT_EVERY["cuda" if cuda else "cpu"]
     with contextlib.ExitStack() as stack:
         tiled = [stack.enter_context(_tile_scan(scan, config, workdir)) for scan in scans]
         totals = sum(s.counts.sum(axis=0) for s in tiled)
         classes = _training_classes(totals, config, names)
-        size = config.cubes.cube_voxels
-        shape = (config.cubes.n_scales, size, size, size)
+        stack.enter_context(_deterministic(cuda))
+        pool = concurrent.futures.ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 1))
+        stack.callback(pool.shutdown, wait=True, cancel_futures=True)
+        cancel = threading.Event()
+        made = RoundProgress()
+        n_rounds = -(-training.n_batches // training.rotate_every)
+        start = done // training.rotate_every
+
+        def produce() -> Iterator[Round]:
+            for index in range(start, n_rounds):
+                length = min(
+                    training.rotate_every, training.n_batches - index * training.rotate_every
+                )
+                yield make_round(
+                    tiled,
+                    classes,
+                    config,
+                    index,
+                    length,
+                    device=torch_device,
+                    pool=pool,
+                    progress=made,
+                    cancel=cancel,
+                )
+
+        rounds = stack.enter_context(
+            Prefetched(produce, depth=1, device=torch_device, name="training-rounds")
+        )
+        stack.callback(cancel.set)  # first on the way out: the producer stops between tiles
+        state = _Loop(network, optimizer, config, torch_device, every, progress)
         network.train()
         while done < training.n_batches:
-            round_index = done // training.rotate_every
-            first = round_index * training.rotate_every
-            n_round = min(training.rotate_every, training.n_batches - first)
-            if progress is not None:
-                progress(TrainingProgress(done, training.n_batches, math.nan, math.nan, "cubes"))
-            packed, labels = _round_cubes(tiled, classes, config, round_index, n_round)
-            confusion = np.zeros((N_CLASSES, N_CLASSES), np.int64)
-            losses: list[float] = []
-            for batch in range(done - first, n_round):
-                rows = slice(batch * training.batch_size, (batch + 1) * training.batch_size)
-                bits = np.unpackbits(packed[rows], axis=1, count=math.prod(shape))
-                cubes = torch.from_numpy(bits.reshape(-1, *shape).astype(np.float32))
-                target = torch.from_numpy(labels[rows].astype(np.int64) - 1)
-                cubes, target = cubes.to(torch_device), target.to(torch_device)
-                optimizer.zero_grad(set_to_none=True)
-                logits = network(cubes)
-                loss = loss_fn(logits, target)
-                loss.backward()
-                optimizer.step()
-                losses.append(float(loss.detach()))
-                predicted = logits.detach().argmax(dim=1).cpu().numpy()
-                np.add.at(confusion, (target.cpu().numpy(), predicted), 1)
-                done += 1
-                if progress is not None:
-                    progress(
-                        TrainingProgress(
-                            done,
-                            training.n_batches,
-                            float(np.mean(losses)),
-                            _balanced_accuracy(confusion),
-                        )
-                    )
-                if (
-                    checkpoint is not None
-                    and training.checkpoint_every
-                    and done % training.checkpoint_every == 0
-                    and done < training.n_batches
-                ):
-                    _save_checkpoint(Path(checkpoint), network, optimizer, done, config, names)
+            first = (done // training.rotate_every) * training.rotate_every
+            current = _next_round(rounds, made, done, training.n_batches, progress, stop)
+            if current is None:  # stopped while waiting: the state is that of `done`
+                _stopped(path, network, optimizer, done, config, names)
+            done = state.run_round(current, first, done, stop, path, names)
     network.eval().cpu()
     return CnnModel(
         network,
@@ -187,6 +210,145 @@ def train_cnn_model(
         training_time_s=time.perf_counter() - started,
         package_version=__version__,
     )
+
+
+def _next_round(
+    rounds: Prefetched[Round],
+    made: RoundProgress,
+    done: int,
+    n_batches: int,
+    progress: Progress | None,
+    stop: threading.Event | None,
+) -> Round | None:
+    """The next round's cubes, reporting the producer's progress while waiting for them;
+    ``None`` when ``stop`` is set meanwhile."""
+    while True:
+        if stop is not None and stop.is_set():
+            return None
+        arrived, current = rounds.poll(_WAIT_POLL_S)
+        if arrived:
+            return current
+        if progress is not None:
+            progress(
+                TrainingProgress(
+                    done, n_batches, math.nan, math.nan, "cubes", made.points, made.total
+                )
+            )
+
+
+class _Loop:
+    """The optimisation steps of a run, with the round's loss and confusion kept on the
+    device."""
+
+    def __init__(
+        self,
+        network: Any,
+        optimizer: Any,
+        config: CnnConfig,
+        device: Any,
+        report_every: int,
+        progress: Progress | None,
+    ) -> None:
+        self.network = network
+        self.optimizer = optimizer
+        self.config = config
+        self.device = device
+        self.report_every = report_every
+        self.progress = progress
+        self.loss_fn = torch.nn.CrossEntropyLoss()
+        size = config.cubes.cube_voxels
+        self.shape = (config.cubes.n_scales, size, size, size)
+        cuda = device.type == "cuda"
+        self.autocast = cuda and config.training.autocast and bool(torch.cuda.is_bf16_supported())
+
+    def run_round(
+        self,
+        current: Round,
+        first: int,
+        done: int,
+        stop: threading.Event | None,
+        checkpoint: Path | None,
+        names: tuple[str, ...],
+    ) -> int:
+        """Train the batches of ``current`` from batch ``done``; returns batches done."""
+        training = self.config.training
+        batch_size = training.batch_size
+        n_round = current.targets.shape[0] // batch_size
+        loss_sum = torch.zeros((), dtype=torch.float64, device=self.device)
+        confusion = torch.zeros(N_CLASSES * N_CLASSES, dtype=torch.int64, device=self.device)
+        begin = done - first
+        for batch in range(begin, n_round):
+            if stop is not None and stop.is_set():
+                _stopped(checkpoint, self.network, self.optimizer, done, self.config, names)
+            rows = slice(batch * batch_size, (batch + 1) * batch_size)
+            cubes = unpack_cubes(current.packed[rows], self.shape, dtype=torch.float32)
+            target = current.targets[rows]
+            logits, loss = self._step(cubes, target)
+            loss_sum += loss.detach()
+            confusion += torch.bincount(
+                target * N_CLASSES + logits.detach().argmax(dim=1), minlength=N_CLASSES**2
+            )
+            done += 1
+            if self.progress is not None and (
+                done % self.report_every == 0 or batch == n_round - 1
+            ):
+                self.progress(
+                    TrainingProgress(
+                        done,
+                        training.n_batches,
+                        float(loss_sum) / (batch + 1 - begin),
+                        _balanced_accuracy(confusion.view(N_CLASSES, N_CLASSES).cpu().numpy()),
+                    )
+                )
+            if (
+                checkpoint is not None
+                and training.checkpoint_every
+                and done % training.checkpoint_every == 0
+                and done < training.n_batches
+            ):
+                _save_checkpoint(checkpoint, self.network, self.optimizer, done, self.config, names)
+        return done
+
+    def _step(self, cubes: Any, target: Any) -> tuple[Any, Any]:
+        self.optimizer.zero_grad(set_to_none=True)
+        mixed = (
+            torch.autocast("cuda", dtype=torch.bfloat16)
+            if self.autocast
+            else contextlib.nullcontext()
+        )
+        with mixed:
+            logits = self.network(cubes)
+            loss = self.loss_fn(logits.float(), target)
+        loss.backward()
+        self.optimizer.step()
+        return logits, loss
+
+
+@contextlib.contextmanager
+def _deterministic(cuda: bool) -> Iterator[None]:
+    """Deterministic cuDNN algorithms while training on a GPU (same seed, same model)."""
+    if not cuda:
+        yield
+        return
+    before = torch.backends.cudnn.deterministic, torch.backends.cudnn.benchmark
+    torch.backends.cudnn.deterministic, torch.backends.cudnn.benchmark = True, False
+    try:
+        yield
+    finally:
+        torch.backends.cudnn.deterministic, torch.backends.cudnn.benchmark = before
+
+
+def _stopped(
+    checkpoint: Path | None,
+    network: Any,
+    optimizer: Any,
+    done: int,
+    config: CnnConfig,
+    names: tuple[str, ...],
+) -> NoReturn:
+    if checkpoint is not None:
+        _save_checkpoint(checkpoint, network, optimizer, done, config, names)
+    raise TrainingInterrupted(done, checkpoint)
 
 
 @contextlib.contextmanager
@@ -209,7 +371,7 @@ def _tile_scan(scan: LabelledScan, config: CnnConfig, workdir: str | Path | None
                     f"0..{N_CLASSES}, found {int(labels.max())}"
                 )
             counts[row] = np.bincount(labels, minlength=N_CLASSES + 1)
-        yield _Scan(scan.name, store, store.tiles, counts)
+        yield TiledScan(scan.name, store, store.tiles, counts)
     finally:
         temporary.close()
 
@@ -232,72 +394,6 @@ def _training_classes(
             f"{list(names)}"
         )
     return sorted(classes)
-
-
-def _round_cubes(
-    scans: list[_Scan], classes: list[int], config: CnnConfig, round_index: int, n_batches: int
-) -> tuple[NDArray[np.uint8], NDArray[np.uint8]]:
-    """Bit-packed cubes and label values of one round's points, in batch order."""
-    training = config.training
-    cubes = config.cubes
-    rng = np.random.default_rng((training.seed, round_index))
-    n_points = n_batches * training.batch_size
-    slot_classes = np.concatenate(
-        [
-            rng.permutation(np.resize(np.asarray(classes), training.batch_size))
-            for _ in range(n_batches)
-        ]
-    )
-    angle = float(rng.uniform(0.0, 2.0 * math.pi))
-    # Each slot: a uniformly drawn point of its class over every tile of every scan.
-    where = [(s, row) for s, scan in enumerate(scans) for row in range(len(scan.tiles))]
-    per_tile = np.concatenate([scan.counts for scan in scans])  # (n_all_tiles, 9)
-    tile_of = np.empty(n_points, np.int64)
-    ordinal = np.empty(n_points, np.int64)
-    for value in classes:
-        slots = np.flatnonzero(slot_classes == value)
-        cumulative = np.cumsum(per_tile[:, value])
-        picks = rng.integers(0, int(cumulative[-1]), slots.size)
-        tile_of[slots] = np.searchsorted(cumulative, picks, side="right")
-        ordinal[slots] = picks - (cumulative[tile_of[slots]] - per_tile[tile_of[slots], value])
-    size = cubes.cube_voxels
-    n_bytes = (cubes.n_scales * size**3 + 7) // 8
-    packed = np.zeros((n_points, n_bytes), np.uint8)
-    halo = cubes.reach_m * math.sqrt(2.0)  # the rotated tile needs its reach in any direction
-    cos, sin = math.cos(angle), math.sin(angle)
-    for flat_tile in np.unique(tile_of).tolist():
-        scan_number, row = where[flat_tile]
-        scan = scans[scan_number]
-        tile = scan.tiles[row]
-        slots = np.flatnonzero(tile_of == flat_tile)
-        data = scan.store.read(tile, halo_m=halo)
-        core_labels = np.asarray(data.core.cloud.labels)
-        chosen = np.empty(slots.size, np.int64)
-        for value in np.unique(slot_classes[slots]).tolist():
-            of_class = slots[slot_classes[slots] == value]
-            chosen[np.searchsorted(slots, of_class)] = np.flatnonzero(core_labels == value)[
-                ordinal[of_class]
-            ]
-        x0, y0, x1, y1 = data.bounds
-        centre = np.array([(x0 + x1) / 2, (y0 + y1) / 2, 0.0])
-        xyz = np.concatenate([np.asarray(data.core.cloud.xyz), np.asarray(data.halo.cloud.xyz)])
-        local = xyz - centre
-        rotated = np.column_stack(
-            [
-                cos * local[:, 0] - sin * local[:, 1],
-                sin * local[:, 0] + cos * local[:, 1],
-                local[:, 2],
-            ]
-        )
-        origin = np.zeros(3)
-        occupancy = build_occupancy(
-            rotated, origin=origin, voxel_sizes_m=cubes.voxel_sizes_m, centring=cubes.centring
-        )
-        filled = compute_cubes(
-            occupancy, rotated[chosen], cube_voxels=size, centring=cubes.centring
-        )
-        packed[slots] = np.packbits(filled.reshape(slots.size, -1).astype(np.uint8), axis=1)
-    return packed, slot_classes.astype(np.uint8)
 
 
 def _balanced_accuracy(confusion: NDArray[np.int64]) -> float:
@@ -326,6 +422,8 @@ def _save_checkpoint(
         "optimizer": optimizer.state_dict(),
         "torch_rng": torch.get_rng_state(),
     }
+    if torch.cuda.is_available() and any(p.is_cuda for p in network.parameters()):
+        state["cuda_rng"] = torch.cuda.get_rng_state()
     path.parent.mkdir(parents=True, exist_ok=True)
     temp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.partial")
     try:
@@ -353,9 +451,11 @@ def _load_checkpoint(
         raise CheckpointError(f"{path}: expected checkpoint format {_CHECKPOINT_FORMAT}")
     mine = config_to_dict(config)
     theirs = dict(state["config"])
-    # The length of the run may change on resume; nothing else may.
+    # The length of the run may change on resume, and prediction settings do not touch
+    # training; nothing else may change.
     for table in (mine, theirs):
         table["training"] = {k: v for k, v in table["training"].items() if k != "n_batches"}
+        table.pop("prediction", None)
     if theirs != mine:
         raise CheckpointError(
             f"{path}: written with another configuration: expected the one of this run"
@@ -367,4 +467,6 @@ def _load_checkpoint(
     network.load_state_dict(state["network"])
     optimizer.load_state_dict(state["optimizer"])
     torch.set_rng_state(state["torch_rng"])
+    if "cuda_rng" in state and any(p.is_cuda for p in network.parameters()):
+        torch.cuda.set_rng_state(state["cuda_rng"])
     return int(state["batch"])
