@@ -53,6 +53,15 @@ def _rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
+def _client(app: Any) -> Any:
+    """A TestClient speaking to the app as its page does (loopback Host, the secret)."""
+    from fastapi.testclient import TestClient
+
+    return TestClient(
+        app, base_url="http://127.0.0.1:8765", headers={"X-Semantic3D-Token": app.state.secret}
+    )
+
+
 def prepare(n_points: int) -> dict[str, Any]:
     """Simulate the scan and build its cache once (timed, reused on later runs)."""
     from semantic3d.datasets.simulator import simulate
@@ -110,11 +119,9 @@ SQUARE = [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)]
 
 def child_measure(prepared: dict[str, Any]) -> dict[str, Any]:
     """Everything of one scan size, in this (fresh) process."""
-    from fastapi.testclient import TestClient
-
     from semantic3d.labelling.app import create_label_app
     from semantic3d.labelling.lod import LOD_FOLDER, build_lod
-    from semantic3d.labelling.session import open_label_session
+    from semantic3d.labelling.opening import open_label_session
     from semantic3d.spatial import open_cache_tiles
 
     cache = Path(prepared["cache"])
@@ -129,8 +136,10 @@ def child_measure(prepared: dict[str, Any]) -> dict[str, Any]:
 
     with tempfile.TemporaryDirectory() as scratch:
         start = time.perf_counter()
-        session = open_label_session(cache, labels_path=Path(scratch) / "bench.labels")
-        client = TestClient(create_label_app(session))
+        session = open_label_session(
+            cache, labels_path=Path(scratch) / "bench.labels", cache_dir=DATA / "user-cache"
+        )
+        client = _client(create_label_app(session, port=8765))
         scan = client.get("/api/scan").json()
         loaded = 0
         for node in scan["hierarchy"]["nodes"]:  # breadth first, as the page loads them
@@ -208,12 +217,11 @@ def child_measure(prepared: dict[str, Any]) -> dict[str, Any]:
 
 def scripted_run(prepared: dict[str, Any]) -> dict[str, Any]:
     """Label buildings (3D workflow) and ground (2D workflow) through the HTTP API."""
-    from fastapi.testclient import TestClient
     from scipy import ndimage
 
     from semantic3d.io import read_labels
     from semantic3d.labelling.app import create_label_app
-    from semantic3d.labelling.session import open_label_session
+    from semantic3d.labelling.opening import open_label_session
 
     cache = Path(prepared["cache"])
     truth = read_labels(prepared["truth"])
@@ -222,8 +230,10 @@ def scripted_run(prepared: dict[str, Any]) -> dict[str, Any]:
     operations = 0
     start = time.perf_counter()
     with tempfile.TemporaryDirectory() as scratch:
-        session = open_label_session(cache, labels_path=Path(scratch) / "script.labels")
-        client = TestClient(create_label_app(session))
+        session = open_label_session(
+            cache, labels_path=Path(scratch) / "script.labels", cache_dir=DATA / "user-cache"
+        )
+        client = _client(create_label_app(session, port=8765))
         origin = np.asarray(client.get("/api/scan").json()["hierarchy"]["origin"])
         local = xyz - origin
 

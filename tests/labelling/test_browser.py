@@ -19,7 +19,8 @@ import numpy as np
 import pytest
 
 from semantic3d.io import read_labels
-from semantic3d.labelling.session import LabelSession, open_label_session
+from semantic3d.labelling.opening import open_label_session
+from semantic3d.labelling.session import LabelSession
 from tests.browsers import SOFTWARE_WEBGL_ARGS, chromium
 
 from .conftest import NODE_CAPACITY
@@ -29,26 +30,47 @@ pytestmark = pytest.mark.slow
 HALF_SQUARE_M = 12.0
 
 
+REBOUND_HOST = "rebound.test"
+
+
 @pytest.fixture(scope="module")
 def browser():
-    with chromium(SOFTWARE_WEBGL_ARGS) as browser:
+    # A host name that resolves to 127.0.0.1, as a DNS-rebinding attacker's would.
+    rules = f"--host-resolver-rules=MAP {REBOUND_HOST} 127.0.0.1"
+    with chromium((*SOFTWARE_WEBGL_ARGS, rules)) as browser:
         yield browser
+
+
+def _free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return int(probe.getsockname()[1])
 
 
 class _Server:
     """The app served by uvicorn in a thread of this process, on a free port."""
 
-    def __init__(self, session: LabelSession) -> None:
+    def __init__(self, session: LabelSession, *, record: list | None = None) -> None:
         import uvicorn
 
         from semantic3d.labelling.app import create_label_app
 
-        with socket.socket() as probe:
-            probe.bind(("127.0.0.1", 0))
-            port = probe.getsockname()[1]
-        config = uvicorn.Config(
-            create_label_app(session), host="127.0.0.1", port=port, log_level="warning"
-        )
+        port = _free_port()
+        app = create_label_app(session, port=port)
+        self.port = port
+        self.secret = app.state.secret
+        served = app
+        if record is not None:
+
+            async def served(scope, receive, send):  # type: ignore[no-untyped-def]
+                async def spy(message):  # type: ignore[no-untyped-def]
+                    if message["type"] == "http.response.start":
+                        record.append((scope["method"], scope["path"], message["status"]))
+                    await send(message)
+
+                await app(scope, receive, spy)
+
+        config = uvicorn.Config(served, host="127.0.0.1", port=port, log_level="warning")
         self.server = uvicorn.Server(config)
         self.thread = threading.Thread(target=self.server.run, daemon=True)
         self.thread.start()
@@ -57,7 +79,8 @@ class _Server:
             if time.monotonic() > deadline:
                 raise RuntimeError("the labelling server did not start")
             time.sleep(0.05)
-        self.url = f"http://127.0.0.1:{port}/"
+        self.base = f"http://127.0.0.1:{port}"
+        self.url = f"{self.base}/?token={self.secret}"
 
     def stop(self) -> None:
         self.server.should_exit = True
@@ -96,12 +119,15 @@ def test_polygon_split_plane_fit_assign_undo_save(browser, served, simulated_sca
     server, session, labels_path = served
     artifacts = Path(os.environ.get("SEMANTIC3D_TEST_ARTIFACTS", tmp_path))
     artifacts.mkdir(parents=True, exist_ok=True)
-    page = browser.new_page(viewport={"width": 1200, "height": 800})
+    # bypass_csp: Playwright's wait_for_function evaluates strings, which the page's CSP
+    # forbids; the page itself loads under its CSP in the test of other origins below.
+    page = browser.new_page(viewport={"width": 1200, "height": 800}, bypass_csp=True)
     errors: list[str] = []
     page.on("pageerror", lambda error: errors.append(str(error)))
     try:
         page.goto(server.url)
         _idle(page)
+        assert "token" not in page.url  # the secret left the address bar
         page.screenshot(path=str(artifacts / "labelling-1-opened.png"))
         n = session.n_points
         assert page.inner_text("#working-count") == f"{n:,}"
@@ -212,7 +238,7 @@ def test_the_viewer_shows_prediction_errors_read_only(browser, simulated_scan, t
     )
     server = _Server(session)
     artifacts = Path(os.environ.get("SEMANTIC3D_TEST_ARTIFACTS", tmp_path))
-    page = browser.new_page(viewport={"width": 1000, "height": 700})
+    page = browser.new_page(viewport={"width": 1000, "height": 700}, bypass_csp=True)
     try:
         page.goto(server.url)
         _idle(page)
@@ -235,3 +261,104 @@ def test_the_viewer_shows_prediction_errors_read_only(browser, simulated_scan, t
     red = ((pixels[:, 0] > 180) & (pixels[:, 1] < 80) & (pixels[:, 2] < 80)).sum()
     green = ((pixels[:, 1] > 140) & (pixels[:, 0] < 90) & (pixels[:, 2] < 110)).sum()
     assert red > 50 and green > 50 and green > red  # 70 % right, 30 % wrong
+
+
+_ATTACK = """
+async (target) => {
+  const outcomes = [];
+  for (let i = 0; i < 10; i++) {
+    try { await fetch(`${target}/api/undo`, { method: 'POST', mode: 'no-cors' }); outcomes.push('sent'); }
+    catch (e) { outcomes.push('blocked'); }
+  }
+  try {
+    await fetch(`${target}/api/assign`, {
+      method: 'POST', body: JSON.stringify({ value: 1, confirm_whole_scan: true }),
+      headers: { 'Content-Type': 'application/json', 'X-Semantic3D-Token': 'guess' },
+    });
+    outcomes.push('cors-sent');
+  } catch (e) { outcomes.push('cors-blocked'); }
+  navigator.sendBeacon(`${target}/api/reset`, '{}');
+  const form = document.createElement('form');
+  form.method = 'POST'; form.action = `${target}/api/redo`; form.target = 'sink';
+  const sink = document.createElement('iframe'); sink.name = 'sink';
+  document.body.append(sink, form);
+  form.submit();
+  await new Promise((resolve) => setTimeout(resolve, 500));
+  return outcomes;
+}
+"""
+
+
+def test_pages_of_other_origins_cannot_drive_the_app(browser, simulated_scan, tmp_path):
+    """No-cors POSTs, beacons, form posts and a DNS-rebinding host are all refused."""
+    import http.server
+
+    session = open_label_session(
+        simulated_scan.cache.path,
+        labels_path=tmp_path / "target.labels",
+        node_capacity=NODE_CAPACITY,
+    )
+    session.split(np.diag([0.02, 0.02, -0.001, 1.0]), [(-0.2, -0.2), (0.2, -0.2), (0.2, 0.2)])
+    session.assign(6)
+    before = (session.labels.copy(), list(session.undo_stack))
+    record: list[tuple[str, str, int]] = []
+    server = _Server(session, record=record)
+
+    class Attacker(http.server.BaseHTTPRequestHandler):
+        def do_GET(self) -> None:
+            body = b"<!doctype html><title>elsewhere</title><p>hello</p>"
+            self.send_response(200)
+            self.send_header("Content-Type", "text/html")
+            self.send_header("Content-Length", str(len(body)))
+            self.end_headers()
+            self.wfile.write(body)
+
+        def log_message(self, *args: object) -> None:
+            pass
+
+    attacker = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Attacker)
+    threading.Thread(target=attacker.serve_forever, daemon=True).start()
+    page = browser.new_page()
+    try:
+        page.goto(f"http://127.0.0.1:{attacker.server_address[1]}/")
+        outcomes = page.evaluate(_ATTACK, server.base)
+        assert outcomes.count("sent") == 10 and outcomes[-1] == "cors-blocked"
+        page.wait_for_timeout(300)
+        # DNS rebinding: the attacker's name now points at the app; the app ignores it.
+        rebound = page.goto(f"http://{REBOUND_HOST}:{server.port}/")
+        assert rebound is not None and rebound.status == 421
+        rebound_api = page.evaluate(
+            "async (u) => (await fetch(u, {method: 'POST'})).status",
+            f"http://{REBOUND_HOST}:{server.port}/api/undo",
+        )
+        assert rebound_api == 421
+        # The app's own page, under its Content-Security-Policy, works with the secret.
+        console: list[str] = []
+        page.on("console", lambda message: console.append(message.text))
+        page.goto(server.url)
+        for _ in range(100):
+            if page.evaluate("document.getElementById('status').dataset.idle === 'true'"):
+                break
+            page.wait_for_timeout(100)
+        assert page.evaluate("document.getElementById('error').textContent") == ""
+        assert not [line for line in console if "Content Security Policy" in line], console
+        assert "token" not in page.url
+        page.reload()  # the secret stays with the tab, not in the address
+        name = ""
+        for _ in range(100):
+            name = page.evaluate("document.getElementById('scan-name').textContent")
+            if name != "semantic3d":
+                break
+            page.wait_for_timeout(100)
+        assert name == simulated_scan.cache.path.name
+    finally:
+        page.close()
+        attacker.shutdown()
+        server.stop()
+        session.close()
+    posts = [(path, status) for method, path, status in record if method == "POST"]
+    assert ("/api/undo", 403) in posts and ("/api/reset", 403) in posts  # they did arrive
+    assert ("/api/redo", 403) in posts
+    assert all(status in (403, 421) for _, status in posts), posts
+    np.testing.assert_array_equal(session.labels, before[0])
+    assert session.undo_stack == before[1] and session.redo_stack == []

@@ -11,7 +11,7 @@ from typer.testing import CliRunner
 from semantic3d.cli.app import app
 from semantic3d.labelling.errors import LabelFileError
 from semantic3d.labelling.labelfile import read_label_file
-from semantic3d.labelling.session import open_label_session
+from semantic3d.labelling.opening import open_label_session
 
 from .conftest import NODE_CAPACITY
 

@@ -19,3 +19,7 @@ class OperationError(Semantic3DError, ValueError):
 
 class ReadOnlyError(Semantic3DError, PermissionError):
     """A change was asked of a read-only viewer session."""
+
+
+class WholeScanError(OperationError):
+    """An assignment would change the whole scan and was not confirmed."""

@@ -160,6 +160,21 @@ class Journal:
                 path=str(self.path),
             )
 
+    @staticmethod
+    def read_meta(path: str | Path) -> dict[str, Any] | None:
+        """The meta values of the journal at ``path`` without changing it; ``None`` if unreadable."""
+        try:
+            connection = sqlite3.connect(f"{Path(path).resolve().as_uri()}?mode=ro", uri=True)
+        except sqlite3.Error:
+            return None
+        try:
+            rows = connection.execute("SELECT key, value FROM meta").fetchall()
+            return {key: json.loads(value) for key, value in rows}
+        except (sqlite3.Error, ValueError):
+            return None
+        finally:
+            connection.close()
+
     # -- meta ---------------------------------------------------------------------------------
 
     def meta(self) -> dict[str, Any]:

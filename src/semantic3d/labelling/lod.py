@@ -198,6 +198,7 @@ def cache_fingerprint(cache: str | Path) -> str:
 def open_lod(
     cache: str | Path,
     *,
+    directory: str | Path | None = None,
     capacity: int = DEFAULT_NODE_CAPACITY,
     max_depth: int = DEFAULT_MAX_DEPTH,
     chunk_size: int = DEFAULT_CHUNK_SIZE,
@@ -206,10 +207,11 @@ def open_lod(
     """The level-of-detail index of the cache folder ``cache``, built on first use.
 
     A current index (same cache fingerprint, capacity and depth limit) is reopened;
-    otherwise :func:`build_lod` builds it into ``cache/lod-v1``.
+    otherwise :func:`build_lod` builds it into ``directory`` (default ``cache/lod-v1``;
+    the labelling app keeps it in its cache folder instead).
     """
     cache = Path(cache)
-    directory = cache / LOD_FOLDER
+    directory = cache / LOD_FOLDER if directory is None else Path(directory)
     fingerprint = cache_fingerprint(cache)
     if (directory / _MANIFEST).is_file():
         try:

@@ -18,11 +18,10 @@ Memory: two bytes per point (labels and working set) plus one block of coordinat
 
 from __future__ import annotations
 
-import hashlib
 import logging
+import math
 import threading
-import uuid
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -31,15 +30,14 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from semantic3d.core.classes import N_CLASSES
-from semantic3d.core.errors import OutputExistsError
 from semantic3d.io.cache import CachedScan
 from semantic3d.labelling import geometry
-from semantic3d.labelling.errors import OperationError, ReadOnlyError
+from semantic3d.labelling.errors import OperationError, ReadOnlyError, WholeScanError
 from semantic3d.labelling.journal import Delta, Journal
-from semantic3d.labelling.labelfile import build_cache_if_needed, read_label_file
-from semantic3d.labelling.lod import LodIndex, open_lod
+from semantic3d.labelling.lod import LodIndex
+from semantic3d.labelling.saving import check_save_target, file_identity, write_labels_staged
 
-__all__ = ["BLOCK_POINTS", "LabelSession", "OperationResult", "open_label_session"]
+__all__ = ["BLOCK_POINTS", "MAX_RADIUS_M", "MAX_TOLERANCE_M", "LabelSession", "OperationResult"]
 
 logger = logging.getLogger(__name__)
 
@@ -48,6 +46,11 @@ BLOCK_POINTS = 1 << 20
 
 N_LAYERS = N_CLASSES + 1
 _CANDIDATES_MAX = 200_000
+MAX_TOLERANCE_M = 100.0
+"""Largest fit tolerance accepted (metres)."""
+MAX_RADIUS_M = 100_000.0
+"""Largest candidate radius of a fit accepted (metres)."""
+MAX_SEEDS = 1000
 
 
 @dataclass(frozen=True, slots=True)
@@ -72,7 +75,7 @@ class OperationResult:
             "n_working_changed": self.n_working_changed,
             "model": self.model,
             "n_inliers": self.n_inliers,
-            "rms_m": self.rms_m,
+            "rms_m": None if self.rms_m is None or not math.isfinite(self.rms_m) else self.rms_m,
         }
 
 
@@ -88,6 +91,9 @@ class LabelSession:
         journal: Journal | None,
         labels_path: Path | None,
         prediction: NDArray[np.uint8] | None = None,
+        scan_folder: Path | None = None,
+        protected: tuple[Path, ...] = (),
+        started_from: Path | None = None,
         working: NDArray[np.bool_] | None = None,
         undo_stack: list[int] | None = None,
         redo_stack: list[int] | None = None,
@@ -100,6 +106,9 @@ class LabelSession:
         self.prediction = prediction
         self.journal = journal
         self.labels_path = labels_path
+        self.scan_folder = scan_folder
+        self.protected = protected
+        self.started_from = started_from
         self.working = np.ones(scan.n_points, bool) if working is None else working
         self.undo_stack = undo_stack or []
         self.redo_stack = redo_stack or []
@@ -146,6 +155,7 @@ class LabelSession:
             "can_undo": bool(self.undo_stack),
             "can_redo": bool(self.redo_stack),
             "labels_path": None if self.labels_path is None else str(self.labels_path),
+            "started_from": None if self.started_from is None else str(self.started_from),
             "has_prediction": self.prediction is not None,
         }
 
@@ -289,11 +299,19 @@ class LabelSession:
         except ValueError:
             known = ", ".join(k.value for k in geometry.ModelKind)
             raise OperationError(f"kind: expected one of {known}, found {kind!r}") from None
-        seed_xyz = np.asarray(seeds, np.float64).reshape(-1, 3)
-        if len(seed_xyz) == 0:
-            raise OperationError("seeds: expected at least one picked point, found none")
-        if not tolerance_m > 0:
-            raise OperationError(f"tolerance_m: expected a positive distance, found {tolerance_m}")
+        try:
+            seed_xyz = np.asarray(seeds, np.float64).reshape(-1, 3)
+        except (TypeError, ValueError):
+            raise OperationError("seeds: expected a list of [x, y, z] points") from None
+        if not 1 <= len(seed_xyz) <= MAX_SEEDS:
+            raise OperationError(
+                f"seeds: expected 1 to {MAX_SEEDS} picked points, found {len(seed_xyz)}"
+            )
+        if not np.isfinite(seed_xyz).all():
+            raise OperationError("seeds: expected finite coordinates, found NaN or infinity")
+        _check_distance("tolerance_m", tolerance_m, MAX_TOLERANCE_M)
+        if radius_m is not None:
+            _check_distance("radius_m", radius_m, MAX_RADIUS_M)
         centre = seed_xyz.mean(axis=0)
         spread = float(np.linalg.norm(seed_xyz - centre, axis=1).max())
         radius = float(radius_m) if radius_m is not None else max(1.5 * spread, 1.0)
@@ -327,15 +345,26 @@ class LabelSession:
                 rms_m=fitted.rms_m,
             )
 
-    def assign(self, value: int) -> OperationResult:
-        """Move the editable working points to the layer of label value ``value``."""
+    def assign(self, value: int, *, confirm_whole_scan: bool = False) -> OperationResult:
+        """Move the editable working points to the layer of label value ``value``.
+
+        When the working set holds every editable point (the whole scan, as when a
+        session starts), :class:`WholeScanError` is raised unless ``confirm_whole_scan``.
+        """
         value = _layer(value)
         with self.lock:
             self._require_writable()
             if self.locked[value]:
                 raise OperationError(f"layer {value} is locked: unlock it to add points")
+            editable = self.editable()
+            chosen = self.working & editable
+            if not confirm_whole_scan and chosen.any() and not (editable & ~self.working).any():
+                raise WholeScanError(
+                    f"the working set is the whole scan ({int(chosen.sum()):,} editable "
+                    f"points): confirm to assign every one of them to layer {value}"
+                )
             labels = self.labels.copy()
-            labels[self.working & self.editable()] = value
+            labels[chosen] = value
             return self._commit({"name": "assign", "value": value}, labels, self.working)
 
     def reset(self, *, scope: str = "all") -> OperationResult:
@@ -411,29 +440,38 @@ class LabelSession:
     def save(self, path: str | Path | None = None, *, overwrite: bool = False) -> Path:
         """Write the labels as a ``.labels`` file, atomically; return its path.
 
-        The file being edited (``labels_path``) is replaced; any other existing file only
-        with ``overwrite``.
+        ``path`` ``None`` writes the session's labels file; another name must pass
+        :func:`~semantic3d.labelling.saving.check_save_target` (a ``*.labels`` file in the
+        labels file's or the scan's folder, not one the session reads, an existing one only
+        with ``overwrite``). The journal records the save before the rename (see
+        :mod:`~semantic3d.labelling.saving`).
         """
-        from semantic3d.io.labels import write_labels
-
         with self.lock:
             journal = self._require_writable()
-            target = Path(path) if path is not None else self.labels_path
-            if target is None:
+            if self.labels_path is None:
                 raise OperationError("save: expected a path to write the labels to, found none")
-            editing = self.labels_path is not None and _same_file(target, self.labels_path)
-            if target.exists() and not editing and not overwrite:
-                raise OutputExistsError(
-                    f"{target}: already exists and is not the file being edited; "
-                    "pass overwrite to replace it"
-                )
-            labels = self.labels.copy()
-            write_labels(
-                target, (labels[a : a + BLOCK_POINTS] for a in range(0, len(labels), BLOCK_POINTS))
+            target = check_save_target(
+                path,
+                labels_path=self.labels_path,
+                scan_folder=self.scan_folder,
+                protected=self.protected,
+                overwrite=overwrite,
             )
-            identity = _identity(target) if editing else None
-            meta = {"saved_identity": identity} if editing else None
-            journal.append_checkpoint(labels, self.working, note=f"saved {target.name}", meta=meta)
+            editing = target == self.labels_path
+            labels = self.labels.copy()
+            working = self.working.copy()
+
+            def record(sha256: str) -> None:
+                meta = {"pending_sha256": sha256} if editing else None
+                journal.append_checkpoint(labels, working, note=f"saved {target.name}", meta=meta)
+
+            sha256 = write_labels_staged(
+                target, labels, before_rename=record, block_points=BLOCK_POINTS
+            )
+            if editing:
+                journal.set_meta(
+                    saved_identity=file_identity(target), saved_sha256=sha256, pending_sha256=None
+                )
             return target
 
     def close(self) -> None:
@@ -442,109 +480,19 @@ class LabelSession:
             self.journal.close()
 
 
+def _check_distance(name: str, value: float, maximum: float) -> None:
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        number = math.nan
+    if isinstance(value, bool) or not (math.isfinite(number) and 0 < number <= maximum):
+        raise OperationError(
+            f"{name}: expected a finite distance in metres, 0 < {name} <= {maximum:g}, "
+            f"found {value!r}"
+        )
+
+
 def _layer(value: int) -> int:
     if isinstance(value, bool) or int(value) != value or not 0 <= int(value) <= N_CLASSES:
         raise OperationError(f"layer: expected a label value in 0..{N_CLASSES}, found {value!r}")
     return int(value)
-
-
-def _same_file(a: Path, b: Path) -> bool:
-    return a.resolve() == b.resolve()
-
-
-def _identity(path: Path) -> list[int] | None:
-    if not path.is_file():
-        return None
-    stat = path.stat()
-    return [int(stat.st_size), int(stat.st_mtime_ns)]
-
-
-def scan_id(scan: CachedScan) -> str:
-    """A short identity of a cached scan (its meta.json), recorded in journals."""
-    return hashlib.sha256((scan.path / "meta.json").read_bytes()).hexdigest()[:16]
-
-
-def journal_path_for(labels_path: Path) -> Path:
-    """Where the journal of a ``.labels`` file lives: beside it, ``NAME.labels.journal``."""
-    return labels_path.with_name(labels_path.name + ".journal")
-
-
-def open_label_session(
-    scan_path: str | Path,
-    *,
-    labels_path: str | Path | None = None,
-    prediction_path: str | Path | None = None,
-    read_only: bool = False,
-    progress: Callable[[str, int, int], None] | None = None,
-    node_capacity: int | None = None,
-) -> LabelSession:
-    """Open ``scan_path`` (any point format or a cache folder) for labelling or viewing.
-
-    The cache (for a point file: ``NAME.cache`` beside it) and its level-of-detail index
-    are built on first open and reused. ``labels_path`` is read when it exists (its length
-    and values are checked first: :class:`LabelFileError`) and is where :meth:`save`
-    writes. Labelling resumes from the journal beside ``labels_path`` when there is one
-    and the labels file was not changed since the session last saved it; a journal that
-    no longer matches is moved aside (``.stale-<id>``) and a new one started.
-    """
-    scan = build_cache_if_needed(scan_path, progress=progress)
-    kwargs = {} if node_capacity is None else {"capacity": node_capacity}
-    lod = open_lod(scan.path, progress=progress, **kwargs)
-    labels_file = None if labels_path is None else Path(labels_path)
-    labels = (
-        read_label_file(labels_file, n_points=scan.n_points)
-        if labels_file is not None and labels_file.exists()
-        else np.zeros(scan.n_points, np.uint8)
-    )
-    prediction = (
-        None
-        if prediction_path is None
-        else read_label_file(Path(prediction_path), n_points=scan.n_points)
-    )
-    if read_only or labels_file is None:
-        if not read_only:
-            raise OperationError("labelling needs a labels file to save to (--labels)")
-        return LabelSession(
-            scan, lod, labels, journal=None, labels_path=labels_file, prediction=prediction
-        )
-    path = journal_path_for(labels_file)
-    identity = _identity(labels_file)
-    journal = (
-        Journal(path, scan_id=scan_id(scan), n_points=scan.n_points) if path.exists() else None
-    )
-    if journal is not None:
-        meta = journal.meta()
-        state = journal.replay()
-        if state is None or meta.get("saved_identity", meta.get("base_identity")) != identity:
-            journal.close()
-            stale = path.with_name(f"{path.name}.stale-{uuid.uuid4().hex[:8]}")
-            path.rename(stale)
-            for suffix in ("-wal", "-shm"):
-                side = path.with_name(path.name + suffix)
-                if side.exists():
-                    side.rename(stale.with_name(stale.name + suffix))
-            logger.warning(
-                "%s: changed since the journal was written; journal moved to %s", labels_file, stale
-            )
-            journal = None
-        else:
-            logger.info("%s: resuming %d journal entries", path, state.n_entries)
-            return LabelSession(
-                scan,
-                lod,
-                state.labels,
-                journal=journal,
-                labels_path=labels_file,
-                prediction=prediction,
-                working=state.working,
-                undo_stack=state.undo_stack,
-                redo_stack=state.redo_stack,
-                hidden=meta.get("hidden"),
-                locked=meta.get("locked"),
-            )
-    journal = Journal(path, scan_id=scan_id(scan), n_points=scan.n_points)
-    working = np.ones(scan.n_points, bool)
-    journal.append_checkpoint(labels, working, note="opened", meta={"base_identity": identity})
-    return LabelSession(
-        scan, lod, labels, journal=journal, labels_path=labels_file, prediction=prediction
-    )

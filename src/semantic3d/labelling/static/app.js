@@ -1,20 +1,8 @@
 // The labelling page: panels, the 2D polygon and 3D fitting workflows, layers, undo/redo, save.
+import { api } from '/static/api.js';
 import { Viewer } from '/static/viewer.js';
 
 const $ = (id) => document.getElementById(id);
-
-async function api(path, body) {
-  const options = body === undefined ? {} : {
-    method: 'POST', headers: { 'Content-Type': 'application/json' }, body: JSON.stringify(body),
-  };
-  const response = await fetch(path, options);
-  const data = await response.json().catch(() => ({}));
-  if (!response.ok) {
-    const detail = typeof data.detail === 'string' ? data.detail : JSON.stringify(data.detail);
-    throw new Error(detail || response.statusText);
-  }
-  return data;
-}
 
 class LabelApp {
   constructor(scan) {
@@ -205,7 +193,7 @@ class LabelApp {
     this.busy = true;
     this.showStatus();
     try {
-      const data = await api(path, body);
+      const data = await this.call(path, body);
       if (path !== '/api/fit') this.lastFit = null;
       if (clearPicks) this.clearPicks();
       this.showError('');
@@ -218,6 +206,19 @@ class LabelApp {
     } finally {
       this.busy = false;
       this.showStatus();
+    }
+  }
+
+  // An assignment of the whole scan asks first (the server refuses it unconfirmed).
+  async call(path, body) {
+    try {
+      return await api(path, body);
+    } catch (error) {
+      if (error.status === 409 && error.data && error.data.confirm && path === '/api/assign') {
+        if (!window.confirm(`${error.message}?`)) throw new Error('assignment cancelled');
+        return api(path, { ...body, confirm_whole_scan: true });
+      }
+      throw error;
     }
   }
 

@@ -2,6 +2,7 @@
 // under a point budget, refined by the screen size of each node's bounding sphere.
 import * as THREE from 'three';
 import { OrbitControls } from '/static/vendor/three/OrbitControls.js';
+import { apiBytes } from '/static/api.js';
 
 const VERTEX = `
 attribute vec3 rgbc;
@@ -199,8 +200,8 @@ export class Viewer {
   async loadNode(node) {
     const n = node.info.count;
     const [pointsBuffer, stateBuffer] = await Promise.all([
-      fetch(`/api/nodes/${node.info.id}`).then((r) => r.arrayBuffer()),
-      fetch(`/api/nodes/${node.info.id}/state`).then((r) => r.arrayBuffer()),
+      apiBytes(`/api/nodes/${node.info.id}`),
+      apiBytes(`/api/nodes/${node.info.id}/state`),
     ]);
     node.data = {
       positions: new Float32Array(pointsBuffer, 0, 3 * n),
@@ -232,7 +233,7 @@ export class Viewer {
   async refreshStates() {
     const loaded = this.nodes.filter((n) => n.object);
     await Promise.all(loaded.map(async (node) => {
-      const buffer = await fetch(`/api/nodes/${node.info.id}/state`).then((r) => r.arrayBuffer());
+      const buffer = await apiBytes(`/api/nodes/${node.info.id}/state`);
       this.setState(node, buffer);
       this.colourNode(node);
     }));
