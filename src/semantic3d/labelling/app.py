@@ -18,7 +18,14 @@ API (JSON unless noted; coordinates are metres re-centred on ``origin``):
 ``GET /api/nodes/{id}/state`` binary: class × n, working flag × n, prediction × n
 ``GET /api/summary``        layer counts, working set size, undo/redo availability
 ``POST /api/split``         ``{view_projection: 16 numbers row-major, polygon, keep}``
-``POST /api/fit``           ``{kind, seeds: [[x, y, z]], tolerance_m, radius_m?}``
+``POST /api/fit``           ``{kind, seeds: [[x, y, z]], tolerance_m, radius_m?, region?, model?}``
+                            (region: ``{kind: "sphere", centre, radius_m}`` or
+                            ``{kind: "box", min, max}``; model: a previewed one to commit)
+``POST /api/fit/preview``   same body: the model, its inliers' count, rms and a sample
+``GET /api/progress``       the running operation: ``{running, operation, done, total, …}``
+``POST /api/cancel``        ask it to stop (409 ``cancelled`` answers the operation)
+``POST /api/stats``         ``{scope: "working" | "view", view_projection?}``: counts per
+                            class, confusion of prediction against labels, scores
 ``POST /api/assign``        ``{value, confirm_whole_scan?}`` (409 ``confirm`` when unconfirmed
                             and the working set is the whole scan)
 ``POST /api/reset``         ``{scope: "all" | "unlabelled"}``
@@ -50,10 +57,12 @@ from pydantic import BaseModel, Field  # noqa: E402
 from semantic3d.core.classes import CLASSES, UNLABELLED  # noqa: E402
 from semantic3d.core.errors import OutputExistsError, Semantic3DError, ShapeError  # noqa: E402
 from semantic3d.labelling.errors import (  # noqa: E402
+    OperationCancelledError,
     OperationError,
     ReadOnlyError,
     WholeScanError,
 )
+from semantic3d.labelling.fitting import Region  # noqa: E402
 from semantic3d.labelling.security import LocalGuard, new_secret  # noqa: E402
 from semantic3d.labelling.session import (  # noqa: E402
     MAX_RADIUS_M,
@@ -76,11 +85,32 @@ class SplitRequest(BaseModel):
     keep: Literal["inside", "outside"] = "inside"
 
 
+Point = tuple[Finite, Finite, Finite]
+
+
+class RegionRequest(BaseModel):
+    kind: Literal["sphere", "box"]
+    centre: Point | None = None
+    radius_m: float | None = Field(default=None, gt=0, le=MAX_RADIUS_M, allow_inf_nan=False)
+    min: Point | None = None
+    max: Point | None = None
+
+    def region(self) -> Region:
+        return Region.from_dict(self.model_dump())
+
+
 class FitRequest(BaseModel):
     kind: Literal["plane", "line", "cylinder", "sphere"]
-    seeds: list[tuple[Finite, Finite, Finite]] = Field(min_length=1, max_length=MAX_SEEDS)
+    seeds: list[Point] = Field(min_length=1, max_length=MAX_SEEDS)
     tolerance_m: float = Field(gt=0, le=MAX_TOLERANCE_M, allow_inf_nan=False)
     radius_m: float | None = Field(default=None, gt=0, le=MAX_RADIUS_M, allow_inf_nan=False)
+    region: RegionRequest | None = None
+    model: dict[str, Any] | None = None
+
+
+class StatsRequest(BaseModel):
+    scope: Literal["working", "view"] = "working"
+    view_projection: list[Finite] | None = Field(default=None, min_length=16, max_length=16)
 
 
 class AssignRequest(BaseModel):
@@ -167,6 +197,8 @@ def create_label_app(
     async def _errors(request: Request, exc: Semantic3DError) -> JSONResponse:
         if isinstance(exc, WholeScanError):
             return JSONResponse({"detail": str(exc), "confirm": True}, status_code=409)
+        if isinstance(exc, OperationCancelledError):
+            return JSONResponse({"detail": str(exc), "cancelled": True}, status_code=409)
         status = 400
         if isinstance(exc, ReadOnlyError):
             status = 403
@@ -225,7 +257,36 @@ def create_label_app(
                 request.seeds,
                 tolerance_m=request.tolerance_m,
                 radius_m=request.radius_m,
+                region=None if request.region is None else request.region.region(),
+                model=request.model,
             )
+        )
+
+    @app.post("/api/fit/preview")
+    def fit_preview(request: FitRequest) -> dict[str, Any]:
+        preview = session.fit_preview(
+            request.kind,
+            request.seeds,
+            tolerance_m=request.tolerance_m,
+            radius_m=request.radius_m,
+            region=None if request.region is None else request.region.region(),
+        )
+        return preview.to_dict()
+
+    @app.get("/api/progress")
+    def progress() -> dict[str, Any]:
+        return session.progress.snapshot()
+
+    @app.post("/api/cancel")
+    def cancel() -> dict[str, Any]:
+        return {"cancelled": session.cancel()}
+
+    @app.post("/api/stats")
+    def stats(request: StatsRequest) -> dict[str, Any]:
+        from semantic3d.labelling.stats import selection_stats
+
+        return selection_stats(
+            session, scope=request.scope, view_projection=request.view_projection
         )
 
     @app.post("/api/assign")

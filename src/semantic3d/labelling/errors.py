@@ -23,3 +23,7 @@ class ReadOnlyError(Semantic3DError, PermissionError):
 
 class WholeScanError(OperationError):
     """An assignment would change the whole scan and was not confirmed."""
+
+
+class OperationCancelledError(OperationError):
+    """The user cancelled a running operation before it changed anything."""

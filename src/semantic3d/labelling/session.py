@@ -6,14 +6,21 @@ and ``working`` (the points the next operation acts on). Geometry runs over ever
 point, streamed from the cache's ``xyz.npy`` in blocks, never over what the screen shows:
 
 - ``split``: keep the working points inside (or outside) a polygon drawn in a fixed view;
-- ``fit``: fit a plane / line / cylinder / sphere near picked points, keep its inliers;
+- ``fit``: fit a plane / line / cylinder / sphere through picked points, keep its inliers
+  (inside an optional region); ``fit_preview`` shows them first without changing anything;
 - ``assign``: move the working points to a class layer (locked layers are never changed);
 - ``reset``: the working set becomes every editable point (or every unlabelled one);
 - ``move_layer``: move a whole layer to another.
 
-Every operation is one entry of the :class:`~semantic3d.labelling.journal.Journal`; the
+Every operation is a compiled pass (:mod:`~semantic3d.labelling._op_kernels`) writing a
+packed :class:`~semantic3d.labelling.delta.Delta`, journalled before it is applied; the
 session state is what the journal replays to, so reopening resumes where it stopped.
-Memory: two bytes per point (labels and working set) plus one block of coordinates.
+Operations report progress per block and can be cancelled until they commit
+(:mod:`~semantic3d.labelling.progress`).
+
+Memory: two bytes per point (labels, working set), one byte more with a prediction, one
+block of coordinates, and per operation two bit masks (1/8 byte per point each) plus the old
+label of each point it relabels.
 """
 
 from __future__ import annotations
@@ -31,13 +38,25 @@ from numpy.typing import ArrayLike, NDArray
 
 from semantic3d.core.classes import N_CLASSES
 from semantic3d.io.cache import CachedScan
+from semantic3d.labelling import _op_kernels as kernels
 from semantic3d.labelling import geometry
+from semantic3d.labelling.delta import Delta, empty_bits
 from semantic3d.labelling.errors import OperationError, ReadOnlyError, WholeScanError
-from semantic3d.labelling.journal import Delta, Journal
+from semantic3d.labelling.fitting import NO_REGION, Region, model_arrays, model_from_dict
+from semantic3d.labelling.journal import Journal
 from semantic3d.labelling.lod import LodIndex
+from semantic3d.labelling.progress import OperationProgress
 from semantic3d.labelling.saving import check_save_target, file_identity, write_labels_staged
 
-__all__ = ["BLOCK_POINTS", "MAX_RADIUS_M", "MAX_TOLERANCE_M", "LabelSession", "OperationResult"]
+__all__ = [
+    "BLOCK_POINTS",
+    "MAX_RADIUS_M",
+    "MAX_SEEDS",
+    "MAX_TOLERANCE_M",
+    "FitPreview",
+    "LabelSession",
+    "OperationResult",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -46,11 +65,16 @@ BLOCK_POINTS = 1 << 20
 
 N_LAYERS = N_CLASSES + 1
 _CANDIDATES_MAX = 200_000
+PREVIEW_POINTS = 30_000
 MAX_TOLERANCE_M = 100.0
 """Largest fit tolerance accepted (metres)."""
 MAX_RADIUS_M = 100_000.0
 """Largest candidate radius of a fit accepted (metres)."""
 MAX_SEEDS = 1000
+
+
+def _finite(value: float | None) -> float | None:
+    return None if value is None or not math.isfinite(value) else value
 
 
 @dataclass(frozen=True, slots=True)
@@ -75,8 +99,48 @@ class OperationResult:
             "n_working_changed": self.n_working_changed,
             "model": self.model,
             "n_inliers": self.n_inliers,
-            "rms_m": None if self.rms_m is None or not math.isfinite(self.rms_m) else self.rms_m,
+            "rms_m": _finite(self.rms_m),
         }
+
+
+@dataclass(frozen=True, slots=True)
+class FitPreview:
+    """A fitted model and its inliers, before anything changes."""
+
+    model: dict[str, Any]
+    region: dict[str, Any] | None
+    n_inliers: int
+    rms_m: float | None
+    sample: NDArray[np.float32]
+    """A uniform sample of the inliers (re-centred metres), for the page to draw."""
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "model": self.model,
+            "region": self.region,
+            "n_inliers": self.n_inliers,
+            "rms_m": _finite(self.rms_m),
+            "sample": np.round(self.sample.astype(np.float64), 4).tolist(),
+        }
+
+
+def _check_distance(name: str, value: float, maximum: float) -> float:
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        number = math.nan
+    if isinstance(value, bool) or not (math.isfinite(number) and 0 < number <= maximum):
+        raise OperationError(
+            f"{name}: expected a finite distance in metres, 0 < {name} <= {maximum:g}, "
+            f"found {value!r}"
+        )
+    return number
+
+
+def _layer(value: int) -> int:
+    if isinstance(value, bool) or int(value) != value or not 0 <= int(value) <= N_CLASSES:
+        raise OperationError(f"layer: expected a label value in 0..{N_CLASSES}, found {value!r}")
+    return int(value)
 
 
 class LabelSession:
@@ -116,6 +180,11 @@ class LabelSession:
         self.locked = np.array(locked or [False] * N_LAYERS, bool)
         self.version = 0
         self.lock = threading.RLock()
+        """Serialises operations (held for a whole operation)."""
+        self.state_lock = threading.Lock()
+        """Held only while the arrays change (node payloads read under it)."""
+        self.progress = OperationProgress()
+        self._summary: tuple[int, dict[str, Any]] | None = None
 
     # -- properties ---------------------------------------------------------------------------
 
@@ -131,14 +200,21 @@ class LabelSession:
     def origin(self) -> NDArray[np.float64]:
         return self.lod.origin
 
+    def editable_layers(self) -> NDArray[np.bool_]:
+        """Per label value: the layer is neither hidden nor locked."""
+        return ~(self.hidden | self.locked)
+
     def editable(self) -> NDArray[np.bool_]:
         """Points in a layer that is neither hidden nor locked."""
-        return ~(self.hidden | self.locked)[self.labels]
+        return self.editable_layers()[self.labels]
 
     def summary(self) -> dict[str, Any]:
-        """Counts per layer, the working set, undo/redo availability."""
-        counts = np.bincount(self.labels, minlength=N_LAYERS)
-        return {
+        """Counts per layer, the working set, undo/redo availability (cached per version)."""
+        if self._summary is not None and self._summary[0] == self.version:
+            return self._summary[1]
+        counts = np.zeros(N_LAYERS, np.int64)
+        kernels.layer_counts(self.labels, counts)
+        summary = {
             "n_points": self.n_points,
             "read_only": self.read_only,
             "version": self.version,
@@ -151,13 +227,15 @@ class LabelSession:
                 }
                 for value in range(N_LAYERS)
             ],
-            "n_working": int(self.working.sum()),
+            "n_working": int(np.count_nonzero(self.working)),
             "can_undo": bool(self.undo_stack),
             "can_redo": bool(self.redo_stack),
             "labels_path": None if self.labels_path is None else str(self.labels_path),
             "started_from": None if self.started_from is None else str(self.started_from),
             "has_prediction": self.prediction is not None,
         }
+        self._summary = (self.version, summary)
+        return summary
 
     # -- node payloads ------------------------------------------------------------------------
 
@@ -174,84 +252,70 @@ class LabelSession:
             if self.prediction is None
             else self.prediction[indices]
         )
-        with self.lock:
+        with self.state_lock:
             return (
                 self.labels[indices].tobytes()
                 + self.working[indices].astype(np.uint8).tobytes()
                 + prediction.tobytes()
             )
 
-    # -- streaming geometry -------------------------------------------------------------------
+    # -- streaming ----------------------------------------------------------------------------
 
-    def _iter_working(
-        self, mask: NDArray[np.bool_]
-    ) -> Iterator[tuple[NDArray[np.int64], NDArray[np.float64]]]:
-        """(indices, re-centred float64 coordinates) of the points of ``mask``, in blocks."""
+    def iter_blocks(self, *, active_only: bool = True) -> Iterator[tuple[int, NDArray[np.float64]]]:
+        """``(first index, float64 xyz block)`` over the scan, with progress and cancel.
+
+        With ``active_only``, blocks holding no editable working point are skipped unread.
+        The block is a reused buffer (valid until the next one).
+        """
         path = self.scan.path / "xyz.npy"
         offset = int(self.scan.xyz.offset) if isinstance(self.scan.xyz, np.memmap) else 128
         buffer = np.empty((BLOCK_POINTS, 3), np.float64)
+        editable = self.editable_layers()
         with path.open("rb", buffering=0) as stream:
             for start in range(0, self.n_points, BLOCK_POINTS):
                 stop = min(start + BLOCK_POINTS, self.n_points)
-                selected = np.flatnonzero(mask[start:stop])
-                if selected.size == 0:
+                self.progress.update(start)
+                if active_only and not kernels.any_active(
+                    self.labels, self.working, editable, start, stop
+                ):
                     continue
                 block = buffer[: stop - start]
                 stream.seek(offset + start * 24)
-                stream.readinto(block.data.cast("B"))
-                block -= self.origin  # the buffer is ours: re-centre in place
-                if selected.size == block.shape[0]:
-                    yield selected + start, block
-                else:
-                    yield selected + start, block[selected]
+                view = memoryview(block.reshape(-1).view(np.uint8))  # type: ignore[arg-type]
+                got = 0
+                while got < view.nbytes:
+                    read = stream.readinto(view[got:])
+                    if not read:
+                        raise OSError(f"{path}: unexpected end of file at point {start}")
+                    got += read
+                yield start, block
+        self.progress.update(self.n_points)
 
-    def _sample_near(
-        self, mask: NDArray[np.bool_], centre: NDArray[np.float64], radius: float
-    ) -> NDArray[np.float64]:
-        """A uniform sample (at most ``_CANDIDATES_MAX``) of the points of ``mask`` near ``centre``.
-
-        Each near point draws a random key and the smallest keys are kept, block by block:
-        memory stays at one block plus the sample however many points are near.
-        """
-        rng = np.random.default_rng(0)
-        kept = np.empty((0, 3))
-        keys = np.empty(0)
-        for _, xyz in self._iter_working(mask):
-            offset = xyz - centre
-            near = xyz[np.einsum("ij,ij->i", offset, offset) <= radius * radius]
-            kept = np.concatenate([kept, near])
-            keys = np.concatenate([keys, rng.random(len(near))])
-            if len(kept) > _CANDIDATES_MAX:
-                best = np.argpartition(keys, _CANDIDATES_MAX)[:_CANDIDATES_MAX]
-                kept, keys = kept[best], keys[best]
-        return kept
+    def _run(self, name: str) -> _Running:
+        self._require_writable()
+        return _Running(self, name)
 
     def _require_writable(self) -> Journal:
         if self.journal is None:
             raise ReadOnlyError("this scan is open read-only (semantic3d view): nothing changes")
         return self.journal
 
-    def _commit(
-        self,
-        operation: dict[str, Any],
-        labels: NDArray[np.uint8],
-        working: NDArray[np.bool_],
-        **extra: Any,
-    ) -> OperationResult:
-        """Journal the change from the current state to (labels, working), then adopt it."""
+    def _commit(self, operation: dict[str, Any], delta: Delta, **extra: Any) -> OperationResult:
+        """Journal ``delta`` (durable before it shows), then apply it."""
         journal = self._require_writable()
-        delta = Delta.between(self.labels, labels, self.working, working)
-        entry_id = journal.append_apply(operation, delta)  # durable before it shows
-        delta.apply(self.labels, self.working)
-        self.undo_stack.append(entry_id)
-        self.redo_stack.clear()
-        self.version += 1
+        self.progress.committing()
+        entry_id = journal.append_apply(operation, delta)
+        with self.state_lock:
+            delta.apply(self.labels, self.working)
+            self.undo_stack.append(entry_id)
+            self.redo_stack.clear()
+            self.version += 1
         return OperationResult(
             operation["name"],
             entry_id,
-            int(self.working.sum()),
-            int(delta.changed.size),
-            int(delta.working_flip.size),
+            int(np.count_nonzero(self.working)),
+            delta.n_changed,
+            delta.n_flipped,
             **extra,
         )
 
@@ -263,37 +327,27 @@ class LabelSession:
         """Keep the working points inside (``keep="inside"``) or outside a screen polygon."""
         if keep not in ("inside", "outside"):
             raise OperationError(f"keep: expected 'inside' or 'outside', found {keep!r}")
-        matrix = np.asarray(view_projection, np.float64)
-        vertices = np.asarray(polygon, np.float64)
-        with self.lock:
-            self._require_writable()
-            active = self.working & self.editable()
-            new_working = self.working.copy()
-            for indices, xyz in self._iter_working(active):
-                inside = geometry.select_in_polygon(xyz, matrix, vertices)
-                new_working[indices] = inside if keep == "inside" else ~inside
+        matrix = geometry._as_matrix(view_projection)
+        vertices = geometry._as_polygon(polygon)
+        with self.lock, self._run("split"):
+            flip = empty_bits(self.n_points)
+            editable = self.editable_layers()
+            for start, xyz in self.iter_blocks():
+                kernels.split_flips(
+                    xyz, start, self.origin, self.labels, self.working, editable,
+                    matrix, vertices, keep == "inside", flip,
+                )  # fmt: skip
             operation = {
                 "name": "split",
                 "keep": keep,
                 "view_projection": matrix.reshape(-1).tolist(),
                 "polygon": vertices.tolist(),
             }
-            return self._commit(operation, self.labels, new_working)
+            return self._commit(operation, Delta.working_only(self.n_points, flip))
 
-    def fit(
-        self,
-        kind: str,
-        seeds: ArrayLike,
-        *,
-        tolerance_m: float,
-        radius_m: float | None = None,
-    ) -> OperationResult:
-        """Fit a model near ``seeds`` (re-centred metres); the working set keeps its inliers.
-
-        Candidates are the working points within ``radius_m`` of the seeds' centre (by
-        default 1.5 × the seeds' spread, at least 1 m); the fitted model then selects its
-        inliers among all working points of the scan.
-        """
+    def _fit_inputs(
+        self, kind: str, seeds: ArrayLike, tolerance_m: float, radius_m: float | None
+    ) -> tuple[geometry.ModelKind, NDArray[np.float64], float, float]:
         try:
             model_kind = geometry.ModelKind(kind)
         except ValueError:
@@ -309,40 +363,135 @@ class LabelSession:
             )
         if not np.isfinite(seed_xyz).all():
             raise OperationError("seeds: expected finite coordinates, found NaN or infinity")
-        _check_distance("tolerance_m", tolerance_m, MAX_TOLERANCE_M)
-        if radius_m is not None:
-            _check_distance("radius_m", radius_m, MAX_RADIUS_M)
+        tolerance = _check_distance("tolerance_m", tolerance_m, MAX_TOLERANCE_M)
         centre = seed_xyz.mean(axis=0)
         spread = float(np.linalg.norm(seed_xyz - centre, axis=1).max())
-        radius = float(radius_m) if radius_m is not None else max(1.5 * spread, 1.0)
-        with self.lock:
-            self._require_writable()
-            active = self.working & self.editable()
-            candidates = self._sample_near(active, centre, radius)
-            try:
-                fitted = geometry.fit_model(
-                    model_kind, candidates, tolerance_m=tolerance_m, seeds=seed_xyz
-                )
-            except ValueError as exc:
-                raise OperationError(f"fit {model_kind.value}: {exc}") from None
-            new_working = self.working.copy()
-            for indices, xyz in self._iter_working(active):
-                new_working[indices] = fitted.model.distance(xyz) <= tolerance_m
+        radius = (
+            _check_distance("radius_m", radius_m, MAX_RADIUS_M)
+            if radius_m is not None
+            else max(1.5 * spread, 1.0)
+        )
+        return model_kind, seed_xyz, tolerance, radius
+
+    def _fit(
+        self,
+        kind: str,
+        seeds: ArrayLike,
+        tolerance_m: float,
+        radius_m: float | None,
+        region: Region | None,
+        model: dict[str, Any] | None,
+    ) -> tuple[geometry.Model, geometry.ModelKind, NDArray[np.float64], float, float | None]:
+        """The model through the seeds (fitted on candidates in the region, or the one given).
+
+        Returns the model, its kind, the seeds, the tolerance and the rms distance of the
+        candidate inliers (``None`` for a given model).
+        """
+        model_kind, seed_xyz, tolerance, radius = self._fit_inputs(
+            kind, seeds, tolerance_m, radius_m
+        )
+        if model is not None:
+            fitted = model_from_dict(model)
+            if fitted.to_dict()["kind"] != model_kind.value:
+                raise OperationError(f"model: expected a {model_kind.value}, found {model!r}")
+            if not (fitted.distance(seed_xyz) <= tolerance).all():
+                raise OperationError("model: expected a model within tolerance of every pick")
+            return fitted, model_kind, seed_xyz, tolerance, None
+        search = region or Region.sphere(seed_xyz.mean(axis=0), radius)
+        code, parameters = search.kernel()
+        candidates = np.empty((_CANDIDATES_MAX, 3))
+        filled = seen = 0
+        editable = self.editable_layers()
+        for start, xyz in self.iter_blocks():
+            filled, seen = kernels.region_candidates(
+                xyz, start, self.origin, self.labels, self.working, editable,
+                code, parameters, candidates, filled, seen,
+            )  # fmt: skip
+        try:
+            fitted_result = geometry.fit_model(
+                model_kind, candidates[:filled], tolerance_m=tolerance, seeds=seed_xyz
+            )
+        except ValueError as exc:
+            raise OperationError(f"fit {model_kind.value}: {exc}") from None
+        return fitted_result.model, model_kind, seed_xyz, tolerance, fitted_result.rms_m
+
+    def fit_preview(
+        self,
+        kind: str,
+        seeds: ArrayLike,
+        *,
+        tolerance_m: float,
+        radius_m: float | None = None,
+        region: Region | None = None,
+    ) -> FitPreview:
+        """Fit a model through ``seeds`` and count its inliers in ``region``; change nothing."""
+        with self.lock, _Running(self, "fit preview"):
+            fitted, _, _, tolerance, _ = self._fit(kind, seeds, tolerance_m, radius_m, region, None)
+            code, parameters = model_arrays(fitted)
+            region_code, region_parameters = NO_REGION if region is None else region.kernel()
+            sample = np.empty((PREVIEW_POINTS, 3))
+            filled = seen = 0
+            squares = 0.0
+            editable = self.editable_layers()
+            for start, xyz in self.iter_blocks():
+                filled, seen, block_squares = kernels.inlier_sample(
+                    xyz, start, self.origin, self.labels, self.working, editable, code,
+                    parameters, tolerance, region_code, region_parameters, sample, filled, seen,
+                )  # fmt: skip
+                squares += block_squares
+            return FitPreview(
+                fitted.to_dict(),
+                None if region is None else region.to_dict(),
+                int(seen),
+                math.sqrt(squares / seen) if seen else None,
+                sample[:filled].astype(np.float32),
+            )
+
+    def fit(
+        self,
+        kind: str,
+        seeds: ArrayLike,
+        *,
+        tolerance_m: float,
+        radius_m: float | None = None,
+        region: Region | None = None,
+        model: dict[str, Any] | None = None,
+    ) -> OperationResult:
+        """Fit a model through ``seeds`` (re-centred metres); the working set keeps its inliers.
+
+        Candidates are the working points in ``region`` (default: within ``radius_m`` of
+        the seeds' centre, by default 1.5 × the seeds' spread, at least 1 m). The model
+        (``model``: a previewed one, committed as it is) passes within ``tolerance_m`` of
+        every seed; its inliers are the working points within ``tolerance_m`` of it and
+        inside ``region`` (the whole scan when there is none).
+        """
+        with self.lock, self._run("fit"):
+            fitted, model_kind, seed_xyz, tolerance, rms = self._fit(
+                kind, seeds, tolerance_m, radius_m, region, model
+            )
+            code, parameters = model_arrays(fitted)
+            region_code, region_parameters = NO_REGION if region is None else region.kernel()
+            flip = empty_bits(self.n_points)
+            editable = self.editable_layers()
+            for start, xyz in self.iter_blocks():
+                kernels.fit_flips(
+                    xyz, start, self.origin, self.labels, self.working, editable, code,
+                    parameters, tolerance, region_code, region_parameters, flip,
+                )  # fmt: skip
             operation = {
                 "name": "fit",
                 "kind": model_kind.value,
                 "seeds": seed_xyz.tolist(),
-                "tolerance_m": tolerance_m,
-                "radius_m": radius,
-                "model": fitted.model.to_dict(),
+                "tolerance_m": tolerance,
+                "radius_m": radius_m,
+                "region": None if region is None else region.to_dict(),
+                "model": fitted.to_dict(),
             }
+            delta = Delta.working_only(self.n_points, flip)
+            _, n_before = kernels.count_active(self.labels, self.working, editable)
+            n_inliers = int(n_before) - delta.n_flipped
             return self._commit(
-                operation,
-                self.labels,
-                new_working,
-                model=fitted.model.to_dict(),
-                n_inliers=int(new_working.sum()),
-                rms_m=fitted.rms_m,
+                operation, delta, model=fitted.to_dict(), n_inliers=n_inliers, rms_m=rms
             )
 
     def assign(self, value: int, *, confirm_whole_scan: bool = False) -> OperationResult:
@@ -352,44 +501,48 @@ class LabelSession:
         session starts), :class:`WholeScanError` is raised unless ``confirm_whole_scan``.
         """
         value = _layer(value)
-        with self.lock:
-            self._require_writable()
+        with self.lock, self._run("assign"):
             if self.locked[value]:
                 raise OperationError(f"layer {value} is locked: unlock it to add points")
-            editable = self.editable()
-            chosen = self.working & editable
-            if not confirm_whole_scan and chosen.any() and not (editable & ~self.working).any():
+            editable = self.editable_layers()
+            n_editable, n_chosen = kernels.count_active(self.labels, self.working, editable)
+            if not confirm_whole_scan and n_chosen and n_chosen == n_editable:
                 raise WholeScanError(
-                    f"the working set is the whole scan ({int(chosen.sum()):,} editable "
-                    f"points): confirm to assign every one of them to layer {value}"
+                    f"the working set is the whole scan ({n_chosen:,} editable points): "
+                    f"confirm to assign every one of them to layer {value}"
                 )
-            labels = self.labels.copy()
-            labels[chosen] = value
-            return self._commit({"name": "assign", "value": value}, labels, self.working)
+            changed = empty_bits(self.n_points)
+            n = kernels.assign_marks(self.labels, self.working, editable, value, changed)
+            old = np.empty(n, np.uint8)
+            kernels.gather_marked(self.labels, changed, old)
+            delta = Delta(self.n_points, changed, old, None, value, empty_bits(self.n_points))
+            return self._commit({"name": "assign", "value": value}, delta)
 
     def reset(self, *, scope: str = "all") -> OperationResult:
         """The working set becomes every editable point (``scope="unlabelled"``: label 0 only)."""
         if scope not in ("all", "unlabelled"):
             raise OperationError(f"scope: expected 'all' or 'unlabelled', found {scope!r}")
-        with self.lock:
-            self._require_writable()
-            working = self.editable()
-            if scope == "unlabelled":
-                working &= self.labels == 0
-            return self._commit({"name": "reset", "scope": scope}, self.labels, working)
+        with self.lock, self._run("reset"):
+            flip = empty_bits(self.n_points)
+            kernels.reset_flips(
+                self.labels, self.working, self.editable_layers(), scope == "unlabelled", flip
+            )
+            delta = Delta.working_only(self.n_points, flip)
+            return self._commit({"name": "reset", "scope": scope}, delta)
 
     def move_layer(self, source: int, target: int) -> OperationResult:
         """Move every point of layer ``source`` to layer ``target``."""
         source, target = _layer(source), _layer(target)
-        with self.lock:
-            self._require_writable()
+        with self.lock, self._run("move layer"):
             for value in (source, target):
                 if self.locked[value]:
                     raise OperationError(f"layer {value} is locked: unlock it to move points")
-            labels = self.labels.copy()
-            labels[self.labels == source] = target
+            changed = empty_bits(self.n_points)
+            n = 0 if source == target else kernels.layer_marks(self.labels, source, changed)
+            old = np.full(n, source, np.uint8)
+            delta = Delta(self.n_points, changed, old, None, target, empty_bits(self.n_points))
             operation = {"name": "move_layer", "source": source, "target": target}
-            return self._commit(operation, labels, self.working)
+            return self._commit(operation, delta)
 
     def set_layer(
         self, value: int, *, hidden: bool | None = None, locked: bool | None = None
@@ -405,37 +558,39 @@ class LabelSession:
                 self.journal.set_meta(hidden=self.hidden.tolist(), locked=self.locked.tolist())
             self.version += 1
 
+    def _step(self, kind: str) -> OperationResult:
+        with self.lock, self._run(kind):
+            journal = self._require_writable()
+            stack = self.undo_stack if kind == "undo" else self.redo_stack
+            if not stack:
+                raise OperationError(f"nothing to {kind}")
+            target = stack[-1]
+            delta = journal.delta(target)
+            self.progress.committing()
+            entry = journal.append_step(kind, target)
+            with self.state_lock:
+                if kind == "undo":
+                    delta.revert(self.labels, self.working)
+                    self.redo_stack.append(self.undo_stack.pop())
+                else:
+                    delta.apply(self.labels, self.working)
+                    self.undo_stack.append(self.redo_stack.pop())
+                self.version += 1
+            return OperationResult(
+                kind, entry, int(np.count_nonzero(self.working)), delta.n_changed, delta.n_flipped
+            )
+
     def undo(self) -> OperationResult:
         """Revert the last operation still applied."""
-        with self.lock:
-            journal = self._require_writable()
-            if not self.undo_stack:
-                raise OperationError("nothing to undo")
-            target = self.undo_stack[-1]
-            delta = journal.delta(target)
-            entry = journal.append_step("undo", target)
-            delta.revert(self.labels, self.working)
-            self.redo_stack.append(self.undo_stack.pop())
-            self.version += 1
-            return OperationResult(
-                "undo", entry, int(self.working.sum()), delta.changed.size, delta.working_flip.size
-            )
+        return self._step("undo")
 
     def redo(self) -> OperationResult:
         """Reapply the last undone operation."""
-        with self.lock:
-            journal = self._require_writable()
-            if not self.redo_stack:
-                raise OperationError("nothing to redo")
-            target = self.redo_stack[-1]
-            delta = journal.delta(target)
-            entry = journal.append_step("redo", target)
-            delta.apply(self.labels, self.working)
-            self.undo_stack.append(self.redo_stack.pop())
-            self.version += 1
-            return OperationResult(
-                "redo", entry, int(self.working.sum()), delta.changed.size, delta.working_flip.size
-            )
+        return self._step("redo")
+
+    def cancel(self) -> bool:
+        """Ask the running operation to stop (``False`` when none can be stopped)."""
+        return self.progress.cancel()
 
     def save(self, path: str | Path | None = None, *, overwrite: bool = False) -> Path:
         """Write the labels as a ``.labels`` file, atomically; return its path.
@@ -458,8 +613,7 @@ class LabelSession:
                 overwrite=overwrite,
             )
             editing = target == self.labels_path
-            labels = self.labels.copy()
-            working = self.working.copy()
+            labels, working = self.labels, self.working  # no copy: operations wait for the lock
 
             def record(sha256: str) -> None:
                 meta = {"pending_sha256": sha256} if editing else None
@@ -475,24 +629,21 @@ class LabelSession:
             return target
 
     def close(self) -> None:
-        """Close the journal (every committed operation is kept)."""
+        """Close the journal (every committed operation is kept) and the level of detail."""
         if self.journal is not None:
             self.journal.close()
+        self.lod.close()
 
 
-def _check_distance(name: str, value: float, maximum: float) -> None:
-    try:
-        number = float(value)
-    except (TypeError, ValueError):
-        number = math.nan
-    if isinstance(value, bool) or not (math.isfinite(number) and 0 < number <= maximum):
-        raise OperationError(
-            f"{name}: expected a finite distance in metres, 0 < {name} <= {maximum:g}, "
-            f"found {value!r}"
-        )
+class _Running:
+    """``with``: the session's progress shows the operation ``name`` until it ends."""
 
+    def __init__(self, session: LabelSession, name: str) -> None:
+        self.session = session
+        self.name = name
 
-def _layer(value: int) -> int:
-    if isinstance(value, bool) or int(value) != value or not 0 <= int(value) <= N_CLASSES:
-        raise OperationError(f"layer: expected a label value in 0..{N_CLASSES}, found {value!r}")
-    return int(value)
+    def __enter__(self) -> None:
+        self.session.progress.start(self.name, self.session.n_points)
+
+    def __exit__(self, *exc: object) -> None:
+        self.session.progress.finish()
