@@ -264,3 +264,30 @@ def test_the_library_refuses_bad_fit_parameters_too(client) -> None:
             session.fit("plane", [[0.0, 0.0, 0.0]], **options)
     with pytest.raises(OperationError, match="seeds: expected finite coordinates"):
         session.fit("plane", [[0.0, float("nan"), 0.0]], tolerance_m=0.1)
+
+
+def test_preview_commit_progress_cancel_and_stats_over_http(client, simulated_scan) -> None:
+    origin = np.array(client.get("/api/scan").json()["hierarchy"]["origin"])
+    sx, sy, sz = np.array(simulated_scan.station_m) - origin
+    seeds = [(sx + 2, sy, sz - 1.7), (sx - 1, sy + 2, sz - 1.7), (sx, sy - 2, sz - 1.7)]
+    region = {"kind": "sphere", "centre": [sx, sy, sz - 1.7], "radius_m": 6.0}
+    body = {"kind": "plane", "seeds": seeds, "tolerance_m": 0.15, "region": region}
+    preview = client.post("/api/fit/preview", json=body)
+    assert preview.status_code == 200, preview.text
+    shown = preview.json()
+    assert shown["n_inliers"] > 100 and len(shown["sample"]) == min(shown["n_inliers"], 30_000)
+    assert client.get("/api/summary").json()["can_undo"] is False
+    committed = client.post("/api/fit", json={**body, "model": shown["model"]}).json()
+    assert committed["result"]["n_inliers"] == shown["n_inliers"]
+    assert committed["result"]["model"] == shown["model"]
+    bad_region = client.post(
+        "/api/fit/preview",
+        json={**body, "region": {"kind": "box", "min": [0, 0, 0], "max": [0, 1, 1]}},
+    )
+    assert bad_region.status_code == 400 and "min < max" in bad_region.json()["detail"]
+    idle = client.get("/api/progress").json()
+    assert idle["running"] is False and client.post("/api/cancel").json() == {"cancelled": False}
+    stats = client.post("/api/stats", json={"scope": "working"}).json()
+    assert stats["n_points"] == shown["n_inliers"] and stats["has_prediction"] is False
+    view = client.post("/api/stats", json={"scope": "view", "view_projection": TOP_VIEW}).json()
+    assert 0 < view["n_points"] <= simulated_scan.cache.n_points
