@@ -244,6 +244,12 @@ def test_the_viewer_shows_prediction_errors_read_only(browser, simulated_scan, t
         _idle(page)
         assert page.inner_text("#mode-line") == "read-only viewer"
         assert not page.is_visible("#draw-polygon") and not page.is_visible("#assign")
+        for editing in ("#draw-lasso", "#draw-brush", "#fit-preview", "#pick-points", "#save"):
+            assert not page.is_visible(editing)
+        assert page.is_visible("#measure") and page.is_visible("#stats-view")
+        page.click("#stats-working")
+        page.wait_for_function("document.getElementById('stats').textContent.includes('confusion')")
+        assert "overall accuracy" in page.inner_text("#stats")
         page.click("#view-top")
         page.select_option("#colour-mode", "errors")
         page.evaluate(
@@ -362,3 +368,194 @@ def test_pages_of_other_origins_cannot_drive_the_app(browser, simulated_scan, tm
     assert all(status in (403, 421) for _, status in posts), posts
     np.testing.assert_array_equal(session.labels, before[0])
     assert session.undo_stack == before[1] and session.redo_stack == []
+
+
+def _offset(base: np.ndarray, dx: float, dy: float, dz: float) -> np.ndarray:
+    return base + np.array([dx, dy, dz])
+
+
+def test_interactions_of_a_surveyor(browser, served, simulated_scan, tmp_path):
+    """Double-click, Backspace, lasso, brush, measure, legends, preview, remembered view, help."""
+    server, session, _ = served
+    page = browser.new_page(viewport={"width": 1200, "height": 800}, bypass_csp=True)
+    errors: list[str] = []
+    page.on("pageerror", lambda error: errors.append(str(error)))
+    page.on("dialog", lambda dialog: dialog.accept())
+    try:
+        page.goto(server.url)
+        _idle(page)
+        origin = session.origin
+        station = np.array(simulated_scan.station_m) - origin
+        n = session.n_points
+
+        # Help lists every key the page handles.
+        page.keyboard.press("h")
+        assert page.is_visible("#help")
+        keys = page.inner_text("#help-keys")
+        for key in ("Ctrl+Z", "Backspace", "double-click", "Escape", "V", "M", "L", "B"):
+            assert key in keys
+        page.keyboard.press("Escape")
+        assert not page.is_visible("#help")
+
+        # Legends for every colour mode; a height range the user sets.
+        for mode, expected in (
+            ("class", "buildings"),
+            ("rgb", "as scanned"),
+            ("intensity", "intensity"),
+            ("height", "height"),
+        ):
+            page.select_option("#colour-mode", mode)
+            assert expected in page.inner_text("#legend")
+        page.fill("#range-low", f"{origin[2] - 1:.2f}")
+        page.fill("#range-high", f"{origin[2] + 3:.2f}")
+        page.dispatch_event("#range-high", "change")
+        assert f"{origin[2] + 3:.2f}" in page.inner_text("#legend")
+        page.select_option("#colour-mode", "class")
+        page.evaluate("document.activeElement.blur()")
+
+        # Polygon: Backspace removes a vertex, a double click closes it.
+        page.keyboard.press("t")
+        _idle(page)
+        assert page.evaluate("window.labelApp.viewer.view") == "top"
+        page.keyboard.press("d")
+        h = HALF_SQUARE_M
+        corners = [_offset(station, dx, dy, 0.0) for dx, dy in ((-h, -h), (h, -h), (h, h), (-h, h))]
+        for corner in corners[:3]:
+            page.mouse.click(*_client(page, corner))
+        page.mouse.click(*_client(page, _offset(station, 0.0, -1.4 * h, 0.0)))  # a wrong vertex
+        page.keyboard.press("Backspace")
+        assert page.evaluate("window.labelApp.tool.polygon.length") == 3
+        page.mouse.dblclick(*_client(page, corners[3]))
+        assert page.evaluate("window.labelApp.tool.closed")
+        assert page.evaluate("window.labelApp.tool.polygon.length") == 4
+        page.click("#keep-inside")
+        page.wait_for_function(f"document.getElementById('working-count').textContent !== '{n:,}'")
+        _idle(page)
+        after_polygon = int(session.working.sum())
+        assert 0 < after_polygon < n
+
+        # Lasso: drag around the station's neighbourhood, keep what is inside.
+        page.keyboard.press("l")
+        ring = [
+            _offset(station, 6 * np.cos(a), 6 * np.sin(a), 0.0)
+            for a in np.linspace(0, 2 * np.pi, 24)
+        ]
+        page.mouse.move(*_client(page, ring[0]))
+        page.mouse.down()
+        for point in ring[1:]:
+            page.mouse.move(*_client(page, point))
+        page.mouse.up()
+        page.click("#keep-inside")
+        page.wait_for_function(
+            f"document.getElementById('working-count').textContent !== '{after_polygon:,}'"
+        )
+        _idle(page)
+        xy = np.asarray(simulated_scan.cache.xyz)[:, :2] - origin[:2] - station[:2]
+        radius = np.hypot(xy[:, 0], xy[:, 1])
+        working = session.working.copy()
+        assert 0 < working.sum() < after_polygon
+        assert (radius[working] < 6.5).all() and working[radius < 5.0].mean() > 0.95
+
+        # Brush: a stroke across the middle, keep what is outside it.
+        page.keyboard.press("b")
+        page.mouse.move(*_client(page, _offset(station, -7.0, 0.0, 0.0)))
+        page.mouse.down()
+        page.mouse.move(*_client(page, _offset(station, 7.0, 0.0, 0.0)), steps=8)
+        page.mouse.up()
+        page.click("#keep-outside")
+        page.wait_for_function(
+            f"document.getElementById('working-count').textContent !== '{int(working.sum()):,}'"
+        )
+        _idle(page)
+        assert 0 < session.working.sum() < working.sum()
+        assert session.journal.operations()[-1]["operation"]["name"] == "split_mask"
+
+        # Measure two points: georeferenced coordinates, distance and height between them.
+        page.click("#frame-working")
+        _idle(page)
+        page.keyboard.press("m")
+        ground = station - (0.0, 0.0, simulated_scan.station_m[2])
+        local = np.asarray(simulated_scan.cache.xyz) - origin
+        near = np.flatnonzero(
+            (np.abs(local[:, 2] - ground[2]) < 0.3) & (np.abs(radius - 4.0) < 0.5) & session.working
+        )
+        a = local[near[0]]
+        b = local[near[np.argmax(np.linalg.norm(local[near] - a, axis=1))]]
+        for point in (a, b):
+            page.mouse.click(*_client(page, point))
+        text = page.inner_text("#measure-result")
+        assert text.count("#") >= 3 and "distance" in text and "height" in text, text
+        first_x = float(text.split("x ")[1].split()[0])
+        assert abs(first_x - (origin[0] + a[0])) < 0.05  # the scan's own frame
+        distance = float(text.split("distance ")[1].split()[0])
+        assert abs(distance - np.linalg.norm(b - a)) < 0.1
+        page.keyboard.press("Escape")
+
+        # Fit with a preview: picks, a sphere region shown, then keep the previewed inliers.
+        page.click("#reset-all")
+        _idle(page)
+        page.keyboard.press("p")
+        for dx, dy in ((3.0, 0.5), (-2.0, 2.5), (0.5, -3.0)):
+            page.mouse.click(*_client(page, _offset(ground, dx, dy, 0.0)))
+        page.click("#fit-preview")
+        page.wait_for_function(
+            "document.getElementById('fit-result').textContent.startsWith('preview')"
+        )
+        shown = int(page.inner_text("#fit-result").split(", ")[1].split()[0].replace(",", ""))
+        assert page.evaluate("window.labelApp.viewer.regionObject !== null")
+        page.click("#fit-model")
+        page.wait_for_function(
+            "!document.getElementById('fit-result').textContent.startsWith('preview')"
+        )
+        _idle(page)
+        assert int(session.working.sum()) == shown
+        assert session.journal.operations()[-1]["operation"]["region"]["kind"] == "sphere"
+
+        # The view, colour mode and budget come back after a reload.
+        page.keyboard.press("v")  # a free 2D view along the current direction
+        page.select_option("#colour-mode", "height")
+        page.select_option("#point-budget", "500000")
+        _idle(page)
+        before = page.evaluate("window.labelApp.viewer.viewState()")
+        assert before["view"] == "free2d"
+        page.reload()
+        _idle(page)
+        after = page.evaluate("window.labelApp.viewer.viewState()")
+        assert after["view"] == "free2d"
+        np.testing.assert_allclose(after["position"], before["position"], atol=1e-3)
+        assert page.input_value("#colour-mode") == "height"
+        assert page.input_value("#point-budget") == "500000"
+        assert page.is_visible("#scale-bar") and "m" in page.inner_text("#scale-text")
+    finally:
+        page.close()
+    assert not errors, errors
+
+
+def test_a_long_tour_stays_under_the_memory_budget(browser, served):
+    """Nodes are evicted (least recently shown first) to keep the loaded points bounded."""
+    server, session, _ = served
+    page = browser.new_page(viewport={"width": 900, "height": 600}, bypass_csp=True)
+    try:
+        page.goto(server.url)
+        _idle(page)
+        page.evaluate(
+            "() => { const v = window.labelApp.viewer; v.setBudget(8000); v.memoryBudget = 15000; }"
+        )
+        largest = max(node.count for node in session.lod.nodes)
+        peaks = []
+        for step in range(12):
+            page.evaluate(
+                """(k) => { const v = window.labelApp.viewer;
+                  const a = k * 0.9, r = v.extent * (0.05 + 0.08 * (k % 4));
+                  v.controls.target.set(v.centre.x + r * Math.cos(a), v.centre.y + r * Math.sin(a), v.centre.z);
+                  v.camera.position.set(v.controls.target.x + r * 0.5, v.controls.target.y - r * 0.5, v.centre.z + r * 0.3);
+                  v.controls.update(); v.movingUntil = 0; v.requestRender(true); }""",
+                step,
+            )
+            _idle(page)
+            peaks.append(page.evaluate("window.labelApp.viewer.stats().loadedPoints"))
+        evicted = page.evaluate("window.labelApp.viewer.stats().evicted")
+    finally:
+        page.close()
+    assert evicted > 0
+    assert max(peaks) <= 15000 + 2 * largest, (peaks, largest)

@@ -332,3 +332,36 @@ def count_active(labels, working, editable):  # type: ignore[no-untyped-def]
             if working[i]:
                 n_active += 1
     return n_editable, n_active
+
+
+@nb.njit(cache=True, nogil=True)
+def mask_flips(  # type: ignore[no-untyped-def]
+    xyz, start, origin, labels, working, editable, matrix, mask, width, height, keep_inside, flip
+):
+    """Mark the active points of a block whose side of a screen mask is not kept.
+
+    ``mask`` holds ``width * height`` bits, row by row from the top-left pixel; a point is
+    inside when it is in front of the camera and the pixel it projects to is set.
+    """
+    n = 0
+    for r in range(xyz.shape[0]):
+        i = start + r
+        if not (working[i] and editable[labels[i]]):
+            continue
+        x = xyz[r, 0] - origin[0]
+        y = xyz[r, 1] - origin[1]
+        z = xyz[r, 2] - origin[2]
+        w = matrix[3, 0] * x + matrix[3, 1] * y + matrix[3, 2] * z + matrix[3, 3]
+        inside = False
+        if w > 1e-12:
+            u = (matrix[0, 0] * x + matrix[0, 1] * y + matrix[0, 2] * z + matrix[0, 3]) / w
+            v = (matrix[1, 0] * x + matrix[1, 1] * y + matrix[1, 2] * z + matrix[1, 3]) / w
+            px = int(np.floor((u + 1.0) * 0.5 * width))
+            py = int(np.floor((1.0 - v) * 0.5 * height))
+            if 0 <= px < width and 0 <= py < height:
+                bit = py * width + px
+                inside = (mask[bit >> 3] >> (bit & 7)) & 1 == 1
+        if inside != keep_inside:
+            flip[i >> 3] |= np.uint8(1 << (i & 7))
+            n += 1
+    return n

@@ -18,6 +18,8 @@ API (JSON unless noted; coordinates are metres re-centred on ``origin``):
 ``GET /api/nodes/{id}/state`` binary: class × n, working flag × n, prediction × n
 ``GET /api/summary``        layer counts, working set size, undo/redo availability
 ``POST /api/split``         ``{view_projection: 16 numbers row-major, polygon, keep}``
+``POST /api/split-mask``    ``{view_projection, width, height, mask: base64 bits, keep}``
+                            (a lasso or brush stroke rasterised on the screen)
 ``POST /api/fit``           ``{kind, seeds: [[x, y, z]], tolerance_m, radius_m?, region?, model?}``
                             (region: ``{kind: "sphere", centre, radius_m}`` or
                             ``{kind: "box", min, max}``; model: a previewed one to commit)
@@ -48,6 +50,7 @@ from semantic3d.core.errors import require
 
 require("fastapi", "label")
 
+import numpy as np  # noqa: E402
 from fastapi import FastAPI, HTTPException, Request, Response  # noqa: E402
 from fastapi.exceptions import RequestValidationError  # noqa: E402
 from fastapi.responses import FileResponse, JSONResponse  # noqa: E402
@@ -97,6 +100,14 @@ class RegionRequest(BaseModel):
 
     def region(self) -> Region:
         return Region.from_dict(self.model_dump())
+
+
+class MaskSplitRequest(BaseModel):
+    view_projection: list[Finite] = Field(min_length=16, max_length=16)
+    width: int = Field(gt=0, le=8192)
+    height: int = Field(gt=0, le=8192)
+    mask: str = Field(max_length=1_000_000, description="base64 of the packed bits")
+    keep: Literal["inside", "outside"] = "inside"
 
 
 class FitRequest(BaseModel):
@@ -248,6 +259,22 @@ def create_label_app(
     @app.post("/api/split")
     def split(request: SplitRequest) -> dict[str, Any]:
         return answer(session.split(request.view_projection, request.polygon, keep=request.keep))
+
+    @app.post("/api/split-mask")
+    def split_mask(request: MaskSplitRequest) -> dict[str, Any]:
+        try:
+            bits = np.frombuffer(base64.b64decode(request.mask, validate=True), np.uint8)
+        except ValueError:
+            raise OperationError("mask: expected base64 text, found something else") from None
+        return answer(
+            session.split_mask(
+                request.view_projection,
+                bits,
+                width=request.width,
+                height=request.height,
+                keep=request.keep,
+            )
+        )
 
     @app.post("/api/fit")
     def fit(request: FitRequest) -> dict[str, Any]:

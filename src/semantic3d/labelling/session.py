@@ -345,6 +345,51 @@ class LabelSession:
             }
             return self._commit(operation, Delta.working_only(self.n_points, flip))
 
+    def split_mask(
+        self,
+        view_projection: ArrayLike,
+        mask: NDArray[np.uint8],
+        *,
+        width: int,
+        height: int,
+        keep: str = "inside",
+    ) -> OperationResult:
+        """Keep the working points inside (or outside) a screen mask (a lasso, a brush stroke).
+
+        ``mask`` packs ``width * height`` bits row by row from the top-left pixel (little
+        bit order); the view is the camera the mask was drawn in.
+        """
+        if keep not in ("inside", "outside"):
+            raise OperationError(f"keep: expected 'inside' or 'outside', found {keep!r}")
+        if not (0 < width <= 8192 and 0 < height <= 8192):
+            raise OperationError(f"mask: expected 1..8192 pixels a side, found {width}×{height}")
+        bits = np.asarray(mask, np.uint8).reshape(-1)
+        if bits.size != (width * height + 7) // 8:
+            raise OperationError(
+                f"mask: expected {(width * height + 7) // 8} bytes for {width}×{height} "
+                f"pixels, found {bits.size}"
+            )
+        if not bits.any():
+            raise OperationError("mask: expected at least one painted pixel, found none")
+        matrix = geometry._as_matrix(view_projection)
+        with self.lock, self._run("split"):
+            flip = empty_bits(self.n_points)
+            editable = self.editable_layers()
+            for start, xyz in self.iter_blocks():
+                kernels.mask_flips(
+                    xyz, start, self.origin, self.labels, self.working, editable,
+                    matrix, bits, width, height, keep == "inside", flip,
+                )  # fmt: skip
+            operation = {
+                "name": "split_mask",
+                "keep": keep,
+                "view_projection": matrix.reshape(-1).tolist(),
+                "width": width,
+                "height": height,
+                "painted": int(kernels.count_bits(bits)),
+            }
+            return self._commit(operation, Delta.working_only(self.n_points, flip))
+
     def _fit_inputs(
         self, kind: str, seeds: ArrayLike, tolerance_m: float, radius_m: float | None
     ) -> tuple[geometry.ModelKind, NDArray[np.float64], float, float]:
