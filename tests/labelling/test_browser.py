@@ -542,20 +542,23 @@ def test_a_long_tour_stays_under_the_memory_budget(browser, served):
             "() => { const v = window.labelApp.viewer; v.setBudget(8000); v.memoryBudget = 15000; }"
         )
         largest = max(node.count for node in session.lod.nodes)
-        peaks = []
+        peaks: list[int] = []
+        trace: list[dict] = []
         for step in range(12):
             page.evaluate(
-                """(k) => { const v = window.labelApp.viewer;
+                """async (k) => { const v = window.labelApp.viewer;
                   const a = k * 0.9, r = v.extent * (0.05 + 0.08 * (k % 4));
                   v.controls.target.set(v.centre.x + r * Math.cos(a), v.centre.y + r * Math.sin(a), v.centre.z);
                   v.camera.position.set(v.controls.target.x + r * 0.5, v.controls.target.y - r * 0.5, v.centre.z + r * 0.3);
-                  v.controls.update(); v.movingUntil = 0; v.requestRender(true); }""",
+                  v.controls.update(); v.movingUntil = 0; v.requestRender(true);
+                  return new Promise((done) => requestAnimationFrame(() => requestAnimationFrame(done))); }""",
                 step,
             )
             _idle(page)
             peaks.append(page.evaluate("window.labelApp.viewer.stats().loadedPoints"))
+            trace.append(page.evaluate("window.labelApp.viewer.stats()"))
         evicted = page.evaluate("window.labelApp.viewer.stats().evicted")
     finally:
         page.close()
-    assert evicted > 0
+    assert evicted > 0, (peaks, largest, trace)
     assert max(peaks) <= 15000 + 2 * largest, (peaks, largest)
