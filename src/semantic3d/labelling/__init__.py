@@ -4,6 +4,11 @@
 - :mod:`~semantic3d.labelling.geometry`: polygon splits through a camera, RANSAC fits.
 - :mod:`~semantic3d.labelling.journal`: the append-only SQLite journal (undo, redo, resume).
 - :mod:`~semantic3d.labelling.session`: class layers, the working set, operations, save.
+- :mod:`~semantic3d.labelling.selections` / :mod:`~semantic3d.labelling.fits`: the 2D
+  (polygon, lasso, brush) and 3D (model fits with a region and a preview) workflows.
+- :mod:`~semantic3d.labelling.delta`: an operation's change as packed bit masks.
+- :mod:`~semantic3d.labelling.progress`: progress and cancel of the running operation.
+- :mod:`~semantic3d.labelling.stats`: counts and confusion of the working set or the view.
 - :mod:`~semantic3d.labelling.saving`: where a session may write; saves in step with the journal.
 - :mod:`~semantic3d.labelling.opening`: caches, which labels are read, where saves go.
 - :mod:`~semantic3d.labelling.cachedir`: the per-user cache folder (never beside the data).

@@ -36,6 +36,7 @@ __all__ = [
     "file_identity",
     "file_sha256",
     "journal_matches_file",
+    "save_session",
     "write_labels_staged",
 ]
 
@@ -198,3 +199,41 @@ def write_labels_staged(
         raise
     _fsync_folder(path.parent)
     return sha256
+
+
+def save_session(
+    journal: Any,
+    labels: NDArray[np.uint8],
+    working: NDArray[np.bool_],
+    *,
+    labels_path: Path,
+    requested: str | Path | None,
+    scan_folder: Path | None,
+    protected: tuple[Path, ...],
+    overwrite: bool,
+    block_points: int,
+) -> Path:
+    """Save a session's labels (its caller holds its lock: the arrays do not change).
+
+    The checkpoint and the file's SHA-256 go into the journal before the rename, the file's
+    identity after it.
+    """
+    target = check_save_target(
+        requested,
+        labels_path=labels_path,
+        scan_folder=scan_folder,
+        protected=protected,
+        overwrite=overwrite,
+    )
+    editing = target == labels_path
+
+    def record(sha256: str) -> None:
+        meta = {"pending_sha256": sha256} if editing else None
+        journal.append_checkpoint(labels, working, note=f"saved {target.name}", meta=meta)
+
+    sha256 = write_labels_staged(target, labels, before_rename=record, block_points=block_points)
+    if editing:
+        journal.set_meta(
+            saved_identity=file_identity(target), saved_sha256=sha256, pending_sha256=None
+        )
+    return target

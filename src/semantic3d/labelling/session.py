@@ -31,7 +31,7 @@ import threading
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -39,24 +39,25 @@ from numpy.typing import ArrayLike, NDArray
 from semantic3d.core.classes import N_CLASSES
 from semantic3d.io.cache import CachedScan
 from semantic3d.labelling import _op_kernels as kernels
-from semantic3d.labelling import geometry
 from semantic3d.labelling.delta import Delta, empty_bits
 from semantic3d.labelling.errors import OperationError, ReadOnlyError, WholeScanError
-from semantic3d.labelling.fitting import NO_REGION, Region, model_arrays, model_from_dict
+from semantic3d.labelling.fitting import Region
 from semantic3d.labelling.journal import Journal
 from semantic3d.labelling.lod import LodIndex
 from semantic3d.labelling.progress import OperationProgress
-from semantic3d.labelling.saving import check_save_target, file_identity, write_labels_staged
+from semantic3d.labelling.saving import save_session
 
 __all__ = [
     "BLOCK_POINTS",
     "MAX_RADIUS_M",
     "MAX_SEEDS",
     "MAX_TOLERANCE_M",
-    "FitPreview",
     "LabelSession",
     "OperationResult",
 ]
+
+if TYPE_CHECKING:
+    from semantic3d.labelling.fits import FitPreview
 
 logger = logging.getLogger(__name__)
 
@@ -64,8 +65,6 @@ BLOCK_POINTS = 1 << 20
 """Points read at a time when an operation streams the scan's coordinates."""
 
 N_LAYERS = N_CLASSES + 1
-_CANDIDATES_MAX = 200_000
-PREVIEW_POINTS = 30_000
 MAX_TOLERANCE_M = 100.0
 """Largest fit tolerance accepted (metres)."""
 MAX_RADIUS_M = 100_000.0
@@ -100,27 +99,6 @@ class OperationResult:
             "model": self.model,
             "n_inliers": self.n_inliers,
             "rms_m": _finite(self.rms_m),
-        }
-
-
-@dataclass(frozen=True, slots=True)
-class FitPreview:
-    """A fitted model and its inliers, before anything changes."""
-
-    model: dict[str, Any]
-    region: dict[str, Any] | None
-    n_inliers: int
-    rms_m: float | None
-    sample: NDArray[np.float32]
-    """A uniform sample of the inliers (re-centred metres), for the page to draw."""
-
-    def to_dict(self) -> dict[str, Any]:
-        return {
-            "model": self.model,
-            "region": self.region,
-            "n_inliers": self.n_inliers,
-            "rms_m": _finite(self.rms_m),
-            "sample": np.round(self.sample.astype(np.float64), 4).tolist(),
         }
 
 
@@ -324,26 +302,13 @@ class LabelSession:
     def split(
         self, view_projection: ArrayLike, polygon: ArrayLike, *, keep: str = "inside"
     ) -> OperationResult:
-        """Keep the working points inside (``keep="inside"``) or outside a screen polygon."""
-        if keep not in ("inside", "outside"):
-            raise OperationError(f"keep: expected 'inside' or 'outside', found {keep!r}")
-        matrix = geometry._as_matrix(view_projection)
-        vertices = geometry._as_polygon(polygon)
-        with self.lock, self._run("split"):
-            flip = empty_bits(self.n_points)
-            editable = self.editable_layers()
-            for start, xyz in self.iter_blocks():
-                kernels.split_flips(
-                    xyz, start, self.origin, self.labels, self.working, editable,
-                    matrix, vertices, keep == "inside", flip,
-                )  # fmt: skip
-            operation = {
-                "name": "split",
-                "keep": keep,
-                "view_projection": matrix.reshape(-1).tolist(),
-                "polygon": vertices.tolist(),
-            }
-            return self._commit(operation, Delta.working_only(self.n_points, flip))
+        """Keep the working points inside (``keep="inside"``) or outside a screen polygon.
+
+        See :func:`semantic3d.labelling.selections.split`.
+        """
+        from semantic3d.labelling import selections
+
+        return selections.split(self, view_projection, polygon, keep=keep)
 
     def split_mask(
         self,
@@ -356,109 +321,13 @@ class LabelSession:
     ) -> OperationResult:
         """Keep the working points inside (or outside) a screen mask (a lasso, a brush stroke).
 
-        ``mask`` packs ``width * height`` bits row by row from the top-left pixel (little
-        bit order); the view is the camera the mask was drawn in.
+        See :func:`semantic3d.labelling.selections.split_mask`.
         """
-        if keep not in ("inside", "outside"):
-            raise OperationError(f"keep: expected 'inside' or 'outside', found {keep!r}")
-        if not (0 < width <= 8192 and 0 < height <= 8192):
-            raise OperationError(f"mask: expected 1..8192 pixels a side, found {width}×{height}")
-        bits = np.asarray(mask, np.uint8).reshape(-1)
-        if bits.size != (width * height + 7) // 8:
-            raise OperationError(
-                f"mask: expected {(width * height + 7) // 8} bytes for {width}×{height} "
-                f"pixels, found {bits.size}"
-            )
-        if not bits.any():
-            raise OperationError("mask: expected at least one painted pixel, found none")
-        matrix = geometry._as_matrix(view_projection)
-        with self.lock, self._run("split"):
-            flip = empty_bits(self.n_points)
-            editable = self.editable_layers()
-            for start, xyz in self.iter_blocks():
-                kernels.mask_flips(
-                    xyz, start, self.origin, self.labels, self.working, editable,
-                    matrix, bits, width, height, keep == "inside", flip,
-                )  # fmt: skip
-            operation = {
-                "name": "split_mask",
-                "keep": keep,
-                "view_projection": matrix.reshape(-1).tolist(),
-                "width": width,
-                "height": height,
-                "painted": int(kernels.count_bits(bits)),
-            }
-            return self._commit(operation, Delta.working_only(self.n_points, flip))
+        from semantic3d.labelling import selections
 
-    def _fit_inputs(
-        self, kind: str, seeds: ArrayLike, tolerance_m: float, radius_m: float | None
-    ) -> tuple[geometry.ModelKind, NDArray[np.float64], float, float]:
-        try:
-            model_kind = geometry.ModelKind(kind)
-        except ValueError:
-            known = ", ".join(k.value for k in geometry.ModelKind)
-            raise OperationError(f"kind: expected one of {known}, found {kind!r}") from None
-        try:
-            seed_xyz = np.asarray(seeds, np.float64).reshape(-1, 3)
-        except (TypeError, ValueError):
-            raise OperationError("seeds: expected a list of [x, y, z] points") from None
-        if not 1 <= len(seed_xyz) <= MAX_SEEDS:
-            raise OperationError(
-                f"seeds: expected 1 to {MAX_SEEDS} picked points, found {len(seed_xyz)}"
-            )
-        if not np.isfinite(seed_xyz).all():
-            raise OperationError("seeds: expected finite coordinates, found NaN or infinity")
-        tolerance = _check_distance("tolerance_m", tolerance_m, MAX_TOLERANCE_M)
-        centre = seed_xyz.mean(axis=0)
-        spread = float(np.linalg.norm(seed_xyz - centre, axis=1).max())
-        radius = (
-            _check_distance("radius_m", radius_m, MAX_RADIUS_M)
-            if radius_m is not None
-            else max(1.5 * spread, 1.0)
+        return selections.split_mask(
+            self, view_projection, mask, width=width, height=height, keep=keep
         )
-        return model_kind, seed_xyz, tolerance, radius
-
-    def _fit(
-        self,
-        kind: str,
-        seeds: ArrayLike,
-        tolerance_m: float,
-        radius_m: float | None,
-        region: Region | None,
-        model: dict[str, Any] | None,
-    ) -> tuple[geometry.Model, geometry.ModelKind, NDArray[np.float64], float, float | None]:
-        """The model through the seeds (fitted on candidates in the region, or the one given).
-
-        Returns the model, its kind, the seeds, the tolerance and the rms distance of the
-        candidate inliers (``None`` for a given model).
-        """
-        model_kind, seed_xyz, tolerance, radius = self._fit_inputs(
-            kind, seeds, tolerance_m, radius_m
-        )
-        if model is not None:
-            fitted = model_from_dict(model)
-            if fitted.to_dict()["kind"] != model_kind.value:
-                raise OperationError(f"model: expected a {model_kind.value}, found {model!r}")
-            if not (fitted.distance(seed_xyz) <= tolerance).all():
-                raise OperationError("model: expected a model within tolerance of every pick")
-            return fitted, model_kind, seed_xyz, tolerance, None
-        search = region or Region.sphere(seed_xyz.mean(axis=0), radius)
-        code, parameters = search.kernel()
-        candidates = np.empty((_CANDIDATES_MAX, 3))
-        filled = seen = 0
-        editable = self.editable_layers()
-        for start, xyz in self.iter_blocks():
-            filled, seen = kernels.region_candidates(
-                xyz, start, self.origin, self.labels, self.working, editable,
-                code, parameters, candidates, filled, seen,
-            )  # fmt: skip
-        try:
-            fitted_result = geometry.fit_model(
-                model_kind, candidates[:filled], tolerance_m=tolerance, seeds=seed_xyz
-            )
-        except ValueError as exc:
-            raise OperationError(f"fit {model_kind.value}: {exc}") from None
-        return fitted_result.model, model_kind, seed_xyz, tolerance, fitted_result.rms_m
 
     def fit_preview(
         self,
@@ -469,28 +338,15 @@ class LabelSession:
         radius_m: float | None = None,
         region: Region | None = None,
     ) -> FitPreview:
-        """Fit a model through ``seeds`` and count its inliers in ``region``; change nothing."""
-        with self.lock, _Running(self, "fit preview"):
-            fitted, _, _, tolerance, _ = self._fit(kind, seeds, tolerance_m, radius_m, region, None)
-            code, parameters = model_arrays(fitted)
-            region_code, region_parameters = NO_REGION if region is None else region.kernel()
-            sample = np.empty((PREVIEW_POINTS, 3))
-            filled = seen = 0
-            squares = 0.0
-            editable = self.editable_layers()
-            for start, xyz in self.iter_blocks():
-                filled, seen, block_squares = kernels.inlier_sample(
-                    xyz, start, self.origin, self.labels, self.working, editable, code,
-                    parameters, tolerance, region_code, region_parameters, sample, filled, seen,
-                )  # fmt: skip
-                squares += block_squares
-            return FitPreview(
-                fitted.to_dict(),
-                None if region is None else region.to_dict(),
-                int(seen),
-                math.sqrt(squares / seen) if seen else None,
-                sample[:filled].astype(np.float32),
-            )
+        """Fit a model through ``seeds`` and count its inliers in ``region``; change nothing.
+
+        See :func:`semantic3d.labelling.fits.fit_preview`.
+        """
+        from semantic3d.labelling import fits
+
+        return fits.fit_preview(
+            self, kind, seeds, tolerance_m=tolerance_m, radius_m=radius_m, region=region
+        )
 
     def fit(
         self,
@@ -502,42 +358,21 @@ class LabelSession:
         region: Region | None = None,
         model: dict[str, Any] | None = None,
     ) -> OperationResult:
-        """Fit a model through ``seeds`` (re-centred metres); the working set keeps its inliers.
+        """Fit a model through ``seeds``; the working set keeps its inliers in ``region``.
 
-        Candidates are the working points in ``region`` (default: within ``radius_m`` of
-        the seeds' centre, by default 1.5 × the seeds' spread, at least 1 m). The model
-        (``model``: a previewed one, committed as it is) passes within ``tolerance_m`` of
-        every seed; its inliers are the working points within ``tolerance_m`` of it and
-        inside ``region`` (the whole scan when there is none).
+        See :func:`semantic3d.labelling.fits.fit`.
         """
-        with self.lock, self._run("fit"):
-            fitted, model_kind, seed_xyz, tolerance, rms = self._fit(
-                kind, seeds, tolerance_m, radius_m, region, model
-            )
-            code, parameters = model_arrays(fitted)
-            region_code, region_parameters = NO_REGION if region is None else region.kernel()
-            flip = empty_bits(self.n_points)
-            editable = self.editable_layers()
-            for start, xyz in self.iter_blocks():
-                kernels.fit_flips(
-                    xyz, start, self.origin, self.labels, self.working, editable, code,
-                    parameters, tolerance, region_code, region_parameters, flip,
-                )  # fmt: skip
-            operation = {
-                "name": "fit",
-                "kind": model_kind.value,
-                "seeds": seed_xyz.tolist(),
-                "tolerance_m": tolerance,
-                "radius_m": radius_m,
-                "region": None if region is None else region.to_dict(),
-                "model": fitted.to_dict(),
-            }
-            delta = Delta.working_only(self.n_points, flip)
-            _, n_before = kernels.count_active(self.labels, self.working, editable)
-            n_inliers = int(n_before) - delta.n_flipped
-            return self._commit(
-                operation, delta, model=fitted.to_dict(), n_inliers=n_inliers, rms_m=rms
-            )
+        from semantic3d.labelling import fits
+
+        return fits.fit(
+            self,
+            kind,
+            seeds,
+            tolerance_m=tolerance_m,
+            radius_m=radius_m,
+            region=region,
+            model=model,
+        )
 
     def assign(self, value: int, *, confirm_whole_scan: bool = False) -> OperationResult:
         """Move the editable working points to the layer of label value ``value``.
@@ -641,37 +476,24 @@ class LabelSession:
         """Write the labels as a ``.labels`` file, atomically; return its path.
 
         ``path`` ``None`` writes the session's labels file; another name must pass
-        :func:`~semantic3d.labelling.saving.check_save_target` (a ``*.labels`` file in the
-        labels file's or the scan's folder, not one the session reads, an existing one only
-        with ``overwrite``). The journal records the save before the rename (see
-        :mod:`~semantic3d.labelling.saving`).
+        :func:`~semantic3d.labelling.saving.check_save_target`. The journal records the
+        save before the rename (see :func:`~semantic3d.labelling.saving.save_session`).
         """
         with self.lock:
             journal = self._require_writable()
             if self.labels_path is None:
                 raise OperationError("save: expected a path to write the labels to, found none")
-            target = check_save_target(
-                path,
+            return save_session(
+                journal,
+                self.labels,
+                self.working,
                 labels_path=self.labels_path,
+                requested=path,
                 scan_folder=self.scan_folder,
                 protected=self.protected,
                 overwrite=overwrite,
+                block_points=BLOCK_POINTS,
             )
-            editing = target == self.labels_path
-            labels, working = self.labels, self.working  # no copy: operations wait for the lock
-
-            def record(sha256: str) -> None:
-                meta = {"pending_sha256": sha256} if editing else None
-                journal.append_checkpoint(labels, working, note=f"saved {target.name}", meta=meta)
-
-            sha256 = write_labels_staged(
-                target, labels, before_rename=record, block_points=BLOCK_POINTS
-            )
-            if editing:
-                journal.set_meta(
-                    saved_identity=file_identity(target), saved_sha256=sha256, pending_sha256=None
-                )
-            return target
 
     def close(self) -> None:
         """Close the journal (every committed operation is kept) and the level of detail."""

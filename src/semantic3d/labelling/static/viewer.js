@@ -65,6 +65,7 @@ export class Viewer {
     this.pointSize = 2;
     this.pointBudget = 1_000_000;
     this.movingBudget = 300_000;
+    this.adaptive = true; // false: move at the full budget (a benchmark's fixed-budget row)
     this.memoryBudget = 4_000_000;
     this.dimOutside = true;
     this.hidden = new Array(this.palette.length).fill(false);
@@ -206,6 +207,7 @@ export class Viewer {
   adaptBudget(now) {
     const interval = now - this.lastFrame;
     this.lastFrame = now;
+    if (!this.adaptive) { this.movingBudget = this.pointBudget; return; }
     if (!this.moving || interval > 1000) return;
     this.frameTimes.push(interval);
     if (this.frameTimes.length > 120) this.frameTimes.shift();
