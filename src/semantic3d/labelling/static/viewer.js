@@ -184,12 +184,13 @@ export class Viewer {
 
   cameraMoved() {
     this.movingUntil = performance.now() + SETTLE_MS;
+    this.cameraChanged = true; // moving until a frame is drawn, however long frames take
     this.requestRender(true);
     clearTimeout(this.settleTimer);
     this.settleTimer = setTimeout(() => { this.requestRender(true); this.emit(); }, SETTLE_MS + 20);
   }
 
-  get moving() { return performance.now() < this.movingUntil; }
+  get moving() { return this.cameraChanged || performance.now() < this.movingUntil; }
 
   requestRender(lod = false) {
     if (lod) this.lodDirty = true;
@@ -199,6 +200,7 @@ export class Viewer {
       this.adaptBudget(now);
       if (this.lodDirty) { this.lodDirty = false; this.updateLod(); }
       this.renderer.render(this.scene, this.camera);
+      this.cameraChanged = false;
       this.emit();
     });
   }
