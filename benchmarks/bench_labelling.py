@@ -214,7 +214,7 @@ _GOTO = """async (k) => {
   t.x += 0.3 * size * Math.cos(a * 0.7); t.y += 0.3 * size * Math.sin(a * 0.7);
   v.controls.target.copy(t);
   v.camera.position.set(t.x + r * Math.cos(a), t.y + r * Math.sin(a), t.z + r * 0.4);
-  v.controls.update(); v.movingUntil = 0; v.requestRender(true);
+  v.controls.update(); v.settleNow();
   await new Promise((r2) => requestAnimationFrame(() => requestAnimationFrame(r2)));
 }"""
 

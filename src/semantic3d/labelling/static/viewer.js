@@ -187,7 +187,18 @@ export class Viewer {
     this.cameraChanged = true; // moving until a frame is drawn, however long frames take
     this.requestRender(true);
     clearTimeout(this.settleTimer);
-    this.settleTimer = setTimeout(() => { this.requestRender(true); this.emit(); }, SETTLE_MS + 20);
+    this.settling = true; // the refinement after the stop is still to come
+    this.settleTimer = setTimeout(() => this.settleNow(), SETTLE_MS + 20);
+  }
+
+  // The camera stopped: refine up to the full budget now.
+  settleNow() {
+    clearTimeout(this.settleTimer);
+    this.settling = false;
+    this.cameraChanged = false;
+    this.movingUntil = 0;
+    this.requestRender(true);
+    this.emit();
   }
 
   get moving() { return this.cameraChanged || performance.now() < this.movingUntil; }
@@ -418,7 +429,7 @@ export class Viewer {
   stats() {
     let points = 0, nodes = 0;
     for (const node of this.nodes) if (node.object && node.object.visible) { points += node.info.count; nodes += 1; }
-    return { points, nodes, inFlight: this.inFlight, loadedPoints: this.loadedPoints, evicted: this.evicted, movingBudget: this.movingBudget, moving: this.moving };
+    return { points, nodes, inFlight: this.inFlight, loadedPoints: this.loadedPoints, evicted: this.evicted, movingBudget: this.movingBudget, moving: this.moving || Boolean(this.settling) };
   }
 
   // --- view state (remembered across reloads) ---------------------------------------------------
