@@ -325,6 +325,30 @@ def child_browser(prepared: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+def child_operations(prepared: dict[str, Any]) -> dict[str, Any]:
+    """Only the operations through HTTP (the server as a subprocess) and its peak RSS."""
+    import httpx
+
+    out: dict[str, Any] = {"n_points": prepared["n_points"], "load_before": os.getloadavg()[0]}
+    with tempfile.TemporaryDirectory() as scratch:
+        server, url = _server(Path(prepared["cache"]), Path(scratch) / "ops.labels", _free_port())
+        base, token = url.split("/?token=")
+        client = httpx.Client(base_url=base, headers={"X-Semantic3D-Token": token}, timeout=600)
+        try:
+            for _ in range(600):
+                try:
+                    client.get("/api/summary")
+                    break
+                except httpx.TransportError:
+                    time.sleep(0.1)
+            out["operations"] = _operations(client, prepared)
+            out["server_peak_rss_mb"] = _peak_rss_mb(server.pid)
+        finally:
+            os.killpg(server.pid, signal.SIGTERM)
+            server.wait(30)
+    return out
+
+
 def _timed(client: Any, path: str, body: dict[str, Any] | None = None) -> tuple[float, Any]:
     start = time.perf_counter()
     answer = client.get(path) if body is None else client.post(path, json=body)
@@ -334,13 +358,13 @@ def _timed(client: Any, path: str, body: dict[str, Any] | None = None) -> tuple[
     return seconds, answer.json()
 
 
-def _operations(client: Any, prepared: dict[str, Any]) -> dict[str, float]:
+def _operations(client: Any, prepared: dict[str, Any]) -> dict[str, Any]:
     """Server time of each operation over every point of the scan (through HTTP)."""
     scan = client.get("/api/scan").json()
     origin = np.asarray(scan["hierarchy"]["origin"])
     station = np.asarray(prepared["station_m"]) - origin
     ground = (station - (0, 0, prepared["station_m"][2])).tolist()
-    times: dict[str, float] = {}
+    times: dict[str, Any] = {}
     square = {"view_projection": _top_view(station, 30.0).reshape(-1).tolist(), "polygon": SQUARE}
     times["split_s"], _ = _timed(client, "/api/split", square)
     times["undo_split_s"], _ = _timed(client, "/api/undo", {})
@@ -353,6 +377,20 @@ def _operations(client: Any, prepared: dict[str, Any]) -> dict[str, float]:
     }
     times["fit_preview_s"], preview = _timed(client, "/api/fit/preview", fit)
     times["fit_s"], _ = _timed(client, "/api/fit", {**fit, "model": preview["model"]})
+    times["fit_inliers"] = preview["n_inliers"]
+    times["undo_fit_s"], _ = _timed(client, "/api/undo", {})
+    # A facade-sized region away from the scanner: the fit reads only the nodes meeting it.
+    centre = (np.asarray(ground) + np.array([20.0, 5.0, 0.0])).tolist()
+    small = {
+        **fit,
+        "seeds": [
+            (np.asarray(centre) + d).tolist() for d in ((2, 0, 0), (-1.5, 1.5, 0), (0, -2, 0))
+        ],
+        "region": {"kind": "sphere", "centre": centre, "radius_m": 5.0},
+    }
+    times["fit_preview_5m_s"], preview = _timed(client, "/api/fit/preview", small)
+    times["fit_5m_s"], _ = _timed(client, "/api/fit", {**small, "model": preview["model"]})
+    times["fit_5m_inliers"] = preview["n_inliers"]
     times["reset_s"], _ = _timed(client, "/api/reset", {"scope": "all"})
     times["assign_whole_scan_s"], _ = _timed(
         client, "/api/assign", {"value": 2, "confirm_whole_scan": True}
@@ -515,16 +553,26 @@ def main() -> None:
     parser.add_argument("--points", type=int, nargs="+", default=[10_000_000])
     parser.add_argument("--script-points", type=int, default=1_000_000)
     parser.add_argument("--quick", action="store_true", help="1 M points, no scripted run")
-    parser.add_argument("--child", choices=["build", "browser", "script"])
+    parser.add_argument("--child", choices=["build", "browser", "operations", "script"])
+    parser.add_argument("--operations-only", action="store_true", help="server operations only")
     parser.add_argument("--prepared")
     args = parser.parse_args()
     if args.child:
         prepared = json.loads(args.prepared)
-        run = {"build": child_build, "browser": child_browser, "script": scripted_run}
+        run = {
+            "build": child_build,
+            "browser": child_browser,
+            "operations": child_operations,
+            "script": scripted_run,
+        }
         print(json.dumps(run[args.child](prepared)))
         return
     if args.quick:
         args.points, args.script_points = [1_000_000], 0
+    if args.operations_only:
+        for n in args.points:
+            print(json.dumps(_child("operations", prepare(n)), indent=1), flush=True)
+        return
     rows = []
     for n in args.points:
         prepared = prepare(n)

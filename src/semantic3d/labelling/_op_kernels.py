@@ -365,3 +365,86 @@ def mask_flips(  # type: ignore[no-untyped-def]
             flip[i >> 3] |= np.uint8(1 << (i & 7))
             n += 1
     return n
+
+
+# Passes over the points of octree nodes (``xyz`` re-centred, ``index`` their scan positions):
+# a fit bounded by a region reads only the nodes that meet it.
+
+
+@nb.njit(cache=True, nogil=True)
+def region_candidates_at(  # type: ignore[no-untyped-def]
+    xyz, index, labels, working, editable, region_kind, region, out, filled, seen
+):
+    """:func:`region_candidates` over node points."""
+    k = out.shape[0]
+    for r in range(xyz.shape[0]):
+        i = index[r]
+        if not (working[i] and editable[labels[i]]):
+            continue
+        x, y, z = xyz[r, 0], xyz[r, 1], xyz[r, 2]
+        if not _in_region(region_kind, region, x, y, z):
+            continue
+        if filled < k:
+            out[filled, 0], out[filled, 1], out[filled, 2] = x, y, z
+            filled += 1
+        else:
+            j = int(_uniform(i) * (seen + 1))
+            if j < k:
+                out[j, 0], out[j, 1], out[j, 2] = x, y, z
+        seen += 1
+    return filled, seen
+
+
+@nb.njit(cache=True, nogil=True)
+def inlier_sample_at(  # type: ignore[no-untyped-def]
+    xyz, index, labels, working, editable, kind, model, tolerance, region_kind, region,
+    out, filled, seen,
+):  # fmt: skip
+    """:func:`inlier_sample` over node points."""
+    k = out.shape[0]
+    squares = 0.0
+    for r in range(xyz.shape[0]):
+        i = index[r]
+        if not (working[i] and editable[labels[i]]):
+            continue
+        x, y, z = xyz[r, 0], xyz[r, 1], xyz[r, 2]
+        if not _in_region(region_kind, region, x, y, z):
+            continue
+        d = _distance(kind, model, x, y, z)
+        if d > tolerance:
+            continue
+        squares += d * d
+        if filled < k:
+            out[filled, 0], out[filled, 1], out[filled, 2] = x, y, z
+            filled += 1
+        else:
+            j = int(_uniform(i) * (seen + 1))
+            if j < k:
+                out[j, 0], out[j, 1], out[j, 2] = x, y, z
+        seen += 1
+    return filled, seen, squares
+
+
+@nb.njit(cache=True, nogil=True)
+def mark_active(labels, working, editable, flip):  # type: ignore[no-untyped-def]
+    """Mark every editable working point (all leave the working set, unless kept later)."""
+    for i in range(labels.shape[0]):
+        if working[i] and editable[labels[i]]:
+            flip[i >> 3] |= np.uint8(1 << (i & 7))
+
+
+@nb.njit(cache=True, nogil=True)
+def keep_inliers_at(  # type: ignore[no-untyped-def]
+    xyz, index, labels, working, editable, kind, model, tolerance, region_kind, region, flip
+):
+    """Clear the marks of the node points that are inliers of the model in the region."""
+    for r in range(xyz.shape[0]):
+        i = index[r]
+        if not (working[i] and editable[labels[i]]):
+            continue
+        x, y, z = xyz[r, 0], xyz[r, 1], xyz[r, 2]
+        if (
+            _in_region(region_kind, region, x, y, z)
+            and _distance(kind, model, x, y, z) <= tolerance
+        ):
+            flip[i >> 3] &= np.uint8(~(1 << (i & 7)) & 0xFF)

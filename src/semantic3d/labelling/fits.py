@@ -1,16 +1,19 @@
 """The 3D workflow: a model fitted through picked points, previewed, then its inliers kept.
 
 Candidates are the editable working points in the fit's region (default: a sphere around
-the picks), sampled uniformly (at most 200 000) in one compiled pass; the model (RANSAC and
+the picks), sampled uniformly (at most 200 000) in one compiled pass over the octree nodes
+that meet the region (their float32 re-centred positions: micrometres at a kilometre); the model (RANSAC and
 least squares, :func:`~semantic3d.labelling.geometry.fit_model`) passes within the tolerance
 of every pick; its inliers are the working points within the tolerance of it and inside the
-region, selected in a second compiled pass over the scan. A preview counts them and keeps a
+region, selected in a second compiled pass over the same nodes (every other working point
+leaves the working set without being read); a fit without a region reads the whole scan. A preview counts them and keeps a
 uniform sample to draw, changing nothing; a previewed model can be committed as it is.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -90,6 +93,39 @@ def _fit_inputs(
     return model_kind, seed_xyz, tolerance, radius
 
 
+def _region_nodes(
+    session: LabelSession, region: Region
+) -> Iterator[tuple[NDArray[np.float32], NDArray[Any]]]:
+    """``(re-centred positions, scan indices)`` of the octree nodes meeting ``region``'s box.
+
+    Coarse nodes first (ids are breadth first): a caller that stops early (the fit's
+    candidates) has an even sample of the region, since coarse nodes are uniform
+    subsamples of their cubes, not one crowded near the scanner.
+    """
+    if region.kind == "sphere":
+        assert region.centre is not None
+        low, high = region.centre - region.radius_m, region.centre + region.radius_m
+    else:
+        assert region.low is not None and region.high is not None
+        low, high = region.low, region.high
+    nodes = [
+        node
+        for node in session.lod.nodes
+        if node.count
+        and (np.asarray(node.bounds[:3]) <= high).all()
+        and (np.asarray(node.bounds[3:]) >= low).all()
+    ]
+    total = sum(node.count for node in nodes)
+    session.progress.set_total(total)
+    done = 0
+    for node in nodes:
+        for positions, indices in session.lod.iter_positions(node.id):
+            session.progress.update(done)
+            yield positions, indices
+            done += len(indices)
+    session.progress.update(total)
+
+
 def _fit(
     session: LabelSession,
     kind: str,
@@ -119,11 +155,13 @@ def _fit(
     candidates = np.empty((_CANDIDATES_MAX, 3))
     filled = seen = 0
     editable = session.editable_layers()
-    for start, xyz in session.iter_blocks():
-        filled, seen = kernels.region_candidates(
-            xyz, start, session.origin, session.labels, session.working, editable,
+    for positions, index in _region_nodes(session, search):
+        filled, seen = kernels.region_candidates_at(
+            positions, index, session.labels, session.working, editable,
             code, parameters, candidates, filled, seen,
         )  # fmt: skip
+        if filled >= _CANDIDATES_MAX:  # enough, from the coarsest nodes
+            break
     try:
         fitted_result = geometry.fit_model(
             model_kind, candidates[:filled], tolerance_m=tolerance, seeds=seed_xyz
@@ -151,12 +189,21 @@ def fit_preview(
         filled = seen = 0
         squares = 0.0
         editable = session.editable_layers()
-        for start, xyz in session.iter_blocks():
-            filled, seen, block_squares = kernels.inlier_sample(
-                xyz, start, session.origin, session.labels, session.working, editable, code,
-                parameters, tolerance, region_code, region_parameters, sample, filled, seen,
-            )  # fmt: skip
-            squares += block_squares
+        if region is None:
+            for start, xyz in session.iter_blocks():
+                filled, seen, block_squares = kernels.inlier_sample(
+                    xyz, start, session.origin, session.labels, session.working, editable,
+                    code, parameters, tolerance, region_code, region_parameters, sample,
+                    filled, seen,
+                )  # fmt: skip
+                squares += block_squares
+        else:
+            for positions, index in _region_nodes(session, region):
+                filled, seen, block_squares = kernels.inlier_sample_at(
+                    positions, index, session.labels, session.working, editable, code, parameters,
+                    tolerance, region_code, region_parameters, sample, filled, seen,
+                )  # fmt: skip
+                squares += block_squares
         return FitPreview(
             fitted.to_dict(),
             None if region is None else region.to_dict(),
@@ -192,11 +239,19 @@ def fit(
         region_code, region_parameters = NO_REGION if region is None else region.kernel()
         flip = empty_bits(session.n_points)
         editable = session.editable_layers()
-        for start, xyz in session.iter_blocks():
-            kernels.fit_flips(
-                xyz, start, session.origin, session.labels, session.working, editable, code,
-                parameters, tolerance, region_code, region_parameters, flip,
-            )  # fmt: skip
+        if region is None:
+            for start, xyz in session.iter_blocks():
+                kernels.fit_flips(
+                    xyz, start, session.origin, session.labels, session.working, editable,
+                    code, parameters, tolerance, region_code, region_parameters, flip,
+                )  # fmt: skip
+        else:  # every active point leaves, but the inliers of the nodes meeting the region
+            kernels.mark_active(session.labels, session.working, editable, flip)
+            for positions, index in _region_nodes(session, region):
+                kernels.keep_inliers_at(
+                    positions, index, session.labels, session.working, editable, code, parameters,
+                    tolerance, region_code, region_parameters, flip,
+                )  # fmt: skip
         operation = {
             "name": "fit",
             "kind": model_kind.value,

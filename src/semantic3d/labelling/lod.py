@@ -36,7 +36,7 @@ import os
 import shutil
 import threading
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -198,6 +198,15 @@ class LodIndex:
             self._read("intensity", node.start, node.count),
             self._read("index", node.start, node.count).astype(np.int64),
         )
+
+    def iter_positions(
+        self, node_id: int, *, chunk_points: int = 1 << 20
+    ) -> Iterator[tuple[NDArray[np.float32], NDArray[Any]]]:
+        """``(float32 re-centred positions, uint32 scan indices)`` of a node, in chunks."""
+        node = self.node(node_id)
+        for start in range(node.start, node.start + node.count, chunk_points):
+            count = min(chunk_points, node.start + node.count - start)
+            yield self._read("positions", start, count), self._read("index", start, count)
 
     def node_indices(self, node_id: int) -> NDArray[np.int64]:
         """Cache positions of the points of node ``node_id``."""

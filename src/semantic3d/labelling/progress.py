@@ -38,6 +38,11 @@ class OperationProgress:
             self._started = time.monotonic()
             self._cancellable = True
 
+    def set_total(self, total: int) -> None:
+        """The operation found how many points it will pass (a cancel asked stays asked)."""
+        with self._lock:
+            self._done, self._total = 0, total
+
     def update(self, done: int) -> None:
         """``done`` points passed; raises :class:`OperationCancelledError` when asked to stop."""
         with self._lock:
