@@ -25,16 +25,15 @@ from semantic3d.labelling import geometry
 from semantic3d.labelling.delta import Delta, empty_bits
 from semantic3d.labelling.errors import OperationError
 from semantic3d.labelling.fitting import NO_REGION, Region, model_arrays, model_from_dict
-from semantic3d.labelling.session import (
+from semantic3d.labelling.results import (
     MAX_RADIUS_M,
     MAX_SEEDS,
     MAX_TOLERANCE_M,
-    LabelSession,
     OperationResult,
     _check_distance,
     _finite,
-    _Running,
 )
+from semantic3d.labelling.session import LabelSession, _Running
 
 __all__ = ["PREVIEW_POINTS", "FitPreview", "fit", "fit_preview"]
 
