@@ -1,23 +1,25 @@
-"""The labelling app on simulated scans: level of detail, first frame, server operations, RSS,
+"""The labelling app on simulated scans: level-of-detail build, a real Chromium session
+(first picture, orbit frame rates, a tour of 20 viewpoints), server memory, operation times,
 and a scripted labelling run through the HTTP API.
 
-    python benchmarks/bench_labelling.py [--points 1000000 10000000] [--script-points 1000000]
+    python benchmarks/bench_labelling.py [--points 10000000 100000000] [--script-points 1000000]
+    python benchmarks/bench_labelling.py --quick      # 1 M points, no scripted run
 
 Per scan size (a simulated ``village`` scan, one station; simulation and cache built
-beforehand and timed separately), in a fresh process each:
+beforehand and timed separately), each part in a fresh process:
 
-1. ``lod build``: :func:`semantic3d.labelling.lod.build_lod` from the cache (four streaming
-   passes); beside it the cache's spatial tile store (``open_cache_tiles``), the other
-   one-off index a scan gets, as a reference for a streaming rewrite of the same points.
-2. ``first frame``: open the session, ``GET /api/scan`` and the nodes the page loads first
-   (breadth first up to 300 000 points), through FastAPI's TestClient: a proxy for the time
-   to the first frame (the browser's own drawing is not included).
-3. ``polygon split`` / ``plane fit``: server time over the full working set (every point):
-   a top-view square around the scanner, then a ground plane through three points near it.
-   Beside them, the library a user would pick instead on the same points: matplotlib's
-   ``Path.contains_points`` (on the projected points, projection included) and
-   scikit-learn's ``RANSACRegressor`` (on the fit's candidate points).
-4. peak RSS of the process.
+1. ``build``: the compiled level-of-detail build from the cache
+   (:func:`semantic3d.labelling.lod.build_lod`; points/s, CPU, peak RSS), beside the cache's
+   spatial tile store (``open_cache_tiles``), the other one-off index a scan gets.
+   PotreeConverter 2.0's published rate is 6-9 M points/s on many cores.
+2. ``browser``: ``semantic3d label`` as a subprocess (the real server, uvicorn) and Debian's
+   Chromium through Playwright with software WebGL (SwiftShader): time to the first picture
+   and until the budget is loaded; per point budget (0.25 / 0.5 / 1 / 2 M) the frame times
+   while orbiting 60 frames, with the adaptive moving budget and with the budget fixed;
+   then a tour of 20 viewpoints, after which the tab's JS heap, the browser's processes'
+   RSS, the points kept loaded and the server's peak RSS are read; then each operation's
+   time through the HTTP API (split, fit preview, fit, assign of the whole scan, undo, redo,
+   counts in view, save). Potree's default budget is 1 M points.
 
 Then the scripted labelling run (``--script-points``): buildings with the 3D workflow (per
 building: a top-view crop, then plane fits through three picked points, each followed by
@@ -32,7 +34,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import resource
+import signal
+import subprocess
 import sys
 import tempfile
 import time
@@ -46,11 +51,20 @@ from _harness import OUT
 
 HERE = Path(__file__).resolve()
 DATA = OUT / "labelling"
-FIRST_FRAME_POINTS = 300_000
+USER_CACHE = DATA / "user-cache"
 
 
 def _rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def _client(app: Any) -> Any:
+    """A TestClient speaking to the app as its page does (loopback Host, the secret)."""
+    from fastapi.testclient import TestClient
+
+    return TestClient(
+        app, base_url="http://127.0.0.1:8765", headers={"X-Semantic3D-Token": app.state.secret}
+    )
 
 
 def prepare(n_points: int) -> dict[str, Any]:
@@ -108,112 +122,302 @@ def _front_view(centre: np.ndarray, half_m: float) -> np.ndarray:
 SQUARE = [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)]
 
 
-def child_measure(prepared: dict[str, Any]) -> dict[str, Any]:
-    """Everything of one scan size, in this (fresh) process."""
-    from fastapi.testclient import TestClient
+def _lod_directory(cache: Path) -> Path:
+    from semantic3d.labelling.cachedir import entry_name
+    from semantic3d.labelling.lod import LOD_VERSION
 
-    from semantic3d.labelling.app import create_label_app
-    from semantic3d.labelling.lod import LOD_FOLDER, build_lod
-    from semantic3d.labelling.session import open_label_session
+    return USER_CACHE / f"{entry_name(cache)}.lod-v{LOD_VERSION}"
+
+
+def child_build(prepared: dict[str, Any]) -> dict[str, Any]:
+    """The compiled level-of-detail build (into the cache folder the server then reuses)."""
+    from semantic3d.labelling.lod import build_lod
     from semantic3d.spatial import open_cache_tiles
 
     cache = Path(prepared["cache"])
-    out: dict[str, Any] = {"n_points": prepared["n_points"]}
+    out: dict[str, Any] = {"n_points": prepared["n_points"], "load_before": os.getloadavg()[0]}
     cpu = time.process_time()
     start = time.perf_counter()
-    lod = build_lod(cache, cache / LOD_FOLDER)
+    lod = build_lod(cache, _lod_directory(cache))
     out["lod_build_s"] = time.perf_counter() - start
     out["lod_build_cpu_s"] = time.process_time() - cpu
+    out["lod_points_per_s"] = lod.n_points / out["lod_build_s"]
+    out["lod_points_per_cpu_s"] = lod.n_points / out["lod_build_cpu_s"]
     out["lod_nodes"] = len(lod.nodes)
-    out["rss_after_lod_mb"] = _rss_mb()
-
-    with tempfile.TemporaryDirectory() as scratch:
+    out["lod_peak_rss_mb"] = _rss_mb()
+    if prepared["n_points"] <= 20_000_000:
         start = time.perf_counter()
-        session = open_label_session(cache, labels_path=Path(scratch) / "bench.labels")
-        client = TestClient(create_label_app(session))
-        scan = client.get("/api/scan").json()
-        loaded = 0
-        for node in scan["hierarchy"]["nodes"]:  # breadth first, as the page loads them
-            if loaded + node["count"] > FIRST_FRAME_POINTS and loaded:
-                break
-            client.get(f"/api/nodes/{node['id']}")
-            client.get(f"/api/nodes/{node['id']}/state")
-            loaded += node["count"]
-        out["first_frame_s"] = time.perf_counter() - start
-        out["first_frame_points"] = loaded
-
-        origin = np.asarray(scan["hierarchy"]["origin"])
-        station = np.asarray(prepared["station_m"]) - origin
-        matrix = _top_view(station, 30.0)
-        body = {"view_projection": matrix.reshape(-1).tolist(), "polygon": SQUARE}
-        for attempt in ("split_first", "split"):  # the first loads the compiled kernel
-            cpu = time.process_time()
-            start = time.perf_counter()
-            split = client.post("/api/split", json=body).json()
-            out[f"{attempt}_s"] = time.perf_counter() - start
-            out[f"{attempt}_cpu_s"] = time.process_time() - cpu
-            if attempt == "split_first":
-                client.post("/api/undo")
-        out["split_kept"] = split["result"]["n_working"]
-        client.post("/api/undo")  # the fit runs over the full working set too
-
-        ground = station - (0, 0, prepared["station_m"][2])
-        seeds = [(ground + d).tolist() for d in ((3, 0, 0), (-2, 2.5, 0), (0, -3, 0))]
-        cpu = time.process_time()
-        start = time.perf_counter()
-        fit = client.post(
-            "/api/fit", json={"kind": "plane", "seeds": seeds, "tolerance_m": 0.1}
-        ).json()
-        out["fit_s"] = time.perf_counter() - start
-        out["fit_cpu_s"] = time.process_time() - cpu
-        out["fit_inliers"] = fit["result"]["n_inliers"]
-        out["rss_peak_mb"] = _rss_mb()  # LOD build and the session's operations
-        session.close()
-    start = time.perf_counter()
-    open_cache_tiles(cache)
-    out["tile_store_build_s"] = time.perf_counter() - start
-
-    # The libraries a user would pick instead, on the same points (whole scan in memory).
-    from matplotlib.path import Path as MplPath
-    from sklearn.linear_model import RANSACRegressor
-
-    xyz = np.load(cache / "xyz.npy", mmap_mode="r")
-    start = time.perf_counter()
-    kept = 0
-    for a in range(0, len(xyz), 1 << 21):
-        block = np.asarray(xyz[a : a + (1 << 21)]) - origin
-        ndc = (block @ matrix[:2, :3].T + matrix[:2, 3]) / 1.0
-        kept += int(MplPath(np.array(SQUARE)).contains_points(ndc).sum())
-    out["split_matplotlib_s"] = time.perf_counter() - start
-    out["split_matplotlib_kept"] = kept
-    near = []
-    centre = np.mean(seeds, axis=0)
-    for a in range(0, len(xyz), 1 << 21):
-        block = np.asarray(xyz[a : a + (1 << 21)]) - origin
-        near.append(block[np.linalg.norm(block - centre, axis=1) <= 4.5])
-    candidates = np.concatenate(near)
-    start = time.perf_counter()
-    ransac = RANSACRegressor(residual_threshold=0.1, random_state=0, max_trials=256)
-    ransac.fit(candidates[:, :2], candidates[:, 2])
-    inliers = np.zeros(len(xyz), bool)
-    coef, intercept = ransac.estimator_.coef_, ransac.estimator_.intercept_
-    for a in range(0, len(xyz), 1 << 21):
-        block = np.asarray(xyz[a : a + (1 << 21)]) - origin
-        residual = np.abs(block[:, 2] - block[:, :2] @ coef - intercept)
-        inliers[a : a + len(block)] = residual <= 0.1
-    out["fit_sklearn_s"] = time.perf_counter() - start
-    out["fit_sklearn_candidates"] = len(candidates)
+        open_cache_tiles(cache)
+        out["tile_store_build_s"] = time.perf_counter() - start
     return out
+
+
+def _server(cache: Path, labels: Path, port: int) -> tuple[subprocess.Popen[str], str]:
+    env = {**os.environ, "SEMANTIC3D_CACHE_DIR": str(USER_CACHE), "COLUMNS": "300"}
+    command = [sys.executable, "-m", "semantic3d", "label", str(cache), "--labels", str(labels)]
+    process = subprocess.Popen(
+        [*command, "--port", str(port)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env=env,
+        start_new_session=True,
+    )
+    assert process.stdout is not None
+    for line in process.stdout:
+        if "?token=" in line:
+            return process, line.strip()
+    raise RuntimeError("the labelling server did not start")
+
+
+def _peak_rss_mb(pid: int) -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+def _browser_rss_mb() -> float:
+    import psutil
+
+    total = 0
+    for child in psutil.Process().children(recursive=True):
+        try:
+            if "chrom" in child.name():
+                total += child.memory_info().rss
+        except psutil.Error:
+            continue
+    return total / 2**20
+
+
+_ORBIT = """async (frames) => {
+  const v = window.labelApp.viewer, times = [];
+  let shown = 0;
+  await new Promise((r) => requestAnimationFrame(r));
+  let last = performance.now();
+  for (let i = 0; i < frames; i++) {
+    const t = v.controls.target, p = v.camera.position, a = (2 * Math.PI) / frames;
+    const dx = p.x - t.x, dy = p.y - t.y;
+    p.x = t.x + dx * Math.cos(a) - dy * Math.sin(a);
+    p.y = t.y + dx * Math.sin(a) + dy * Math.cos(a);
+    v.controls.update();
+    await new Promise((r) => requestAnimationFrame(r));
+    const now = performance.now(); times.push(now - last); last = now; shown += v.stats().points;
+  }
+  return { times, movingBudget: v.movingBudget, shown: shown / frames };
+}"""
+
+_GOTO = """async (k) => {
+  const v = window.labelApp.viewer, f = v.frame, c = f.getCenter(v.centre.clone());
+  const size = Math.max(f.max.x - f.min.x, f.max.y - f.min.y), a = k * 2.4;
+  const r = size * (0.08 + 0.06 * (k % 5)), t = c.clone();
+  t.x += 0.3 * size * Math.cos(a * 0.7); t.y += 0.3 * size * Math.sin(a * 0.7);
+  v.controls.target.copy(t);
+  v.camera.position.set(t.x + r * Math.cos(a), t.y + r * Math.sin(a), t.z + r * 0.4);
+  v.controls.update(); v.settleNow();
+  await new Promise((r2) => requestAnimationFrame(() => requestAnimationFrame(r2)));
+}"""
+
+
+def _wait_idle(page: Any, timeout_s: float = 120) -> float:
+    start = time.perf_counter()
+    page.wait_for_function(
+        "() => { const s = document.getElementById('status');"
+        " return s.dataset.idle === 'true' && !s.textContent.startsWith('0 '); }",
+        timeout=timeout_s * 1000,
+    )
+    return time.perf_counter() - start
+
+
+def child_browser(prepared: dict[str, Any]) -> dict[str, Any]:
+    """Server subprocess + Chromium: first picture, orbit, tour, memory, operations."""
+    import httpx
+    from playwright.sync_api import sync_playwright
+
+    cache = Path(prepared["cache"])
+    out: dict[str, Any] = {"n_points": prepared["n_points"], "load_before": os.getloadavg()[0]}
+    with tempfile.TemporaryDirectory() as scratch:
+        port = _free_port()
+        server, url = _server(cache, Path(scratch) / "bench.labels", port)
+        base, token = url.split("/?token=")
+        client = httpx.Client(base_url=base, headers={"X-Semantic3D-Token": token}, timeout=600)
+        try:
+            for _ in range(600):
+                try:
+                    client.get("/api/summary")
+                    break
+                except httpx.TransportError:
+                    time.sleep(0.1)
+            with sync_playwright() as playwright:
+                browser = playwright.chromium.launch(
+                    executable_path="/usr/bin/chromium",
+                    args=[
+                        "--no-sandbox",
+                        "--use-gl=angle",
+                        "--use-angle=swiftshader",
+                        "--enable-unsafe-swiftshader",
+                        "--enable-precise-memory-info",
+                    ],
+                )
+                page = browser.new_page(viewport={"width": 1280, "height": 800}, bypass_csp=True)
+                start = time.perf_counter()
+                page.goto(url)
+                page.wait_for_function(
+                    "() => window.labelApp && window.labelApp.viewer.stats().points > 0",
+                    timeout=120_000,
+                )
+                out["first_picture_s"] = time.perf_counter() - start
+                _wait_idle(page)
+                out["budget_loaded_s"] = time.perf_counter() - start
+                orbit = []
+                for adaptive in (True, False):
+                    for budget in (250_000, 500_000, 1_000_000, 2_000_000):
+                        page.evaluate(
+                            "([b, a]) => { const v = window.labelApp.viewer; v.adaptive = a;"
+                            " v.movingBudget = Math.min(300000, b); v.setBudget(b); }",
+                            [budget, adaptive],
+                        )
+                        _wait_idle(page)
+                        page.wait_for_timeout(1000)  # let the GPU process drain
+                        result = page.evaluate(_ORBIT, 60)
+                        times = sorted(result["times"])
+                        orbit.append(
+                            {
+                                "budget": budget,
+                                "adaptive": adaptive,
+                                "fps": 1000 / (sum(times) / len(times)),
+                                "median_frame_ms": times[len(times) // 2],
+                                "worst_frame_ms": times[-1],
+                                "moving_budget_end": result["movingBudget"],
+                                "mean_points_shown": result["shown"],
+                            }
+                        )
+                        print(json.dumps(orbit[-1]), file=sys.stderr, flush=True)
+                out["orbit"] = orbit
+                page.evaluate(
+                    "() => { const v = window.labelApp.viewer; v.adaptive = true; v.setBudget(1000000); }"
+                )
+                cdp = page.context.new_cdp_session(page)
+                cdp.send("Performance.enable")
+                heap = []
+                start = time.perf_counter()
+                for k in range(20):
+                    page.evaluate(_GOTO, k)
+                    _wait_idle(page)
+                    metrics = {
+                        m["name"]: m["value"] for m in cdp.send("Performance.getMetrics")["metrics"]
+                    }
+                    heap.append(metrics["JSHeapUsedSize"] / 2**20)
+                out["tour_s"] = time.perf_counter() - start
+                stats = page.evaluate("window.labelApp.viewer.stats()")
+                out["tour_js_heap_mb"] = heap
+                out["tour_loaded_points"] = stats["loadedPoints"]
+                out["tour_evicted_nodes"] = stats["evicted"]
+                out["memory_budget_points"] = page.evaluate("window.labelApp.viewer.memoryBudget")
+                out["browser_rss_mb"] = _browser_rss_mb()
+                browser.close()
+            out["server_peak_rss_after_tour_mb"] = _peak_rss_mb(server.pid)
+            out["operations"] = _operations(client, prepared)
+            out["server_peak_rss_mb"] = _peak_rss_mb(server.pid)
+        finally:
+            os.killpg(server.pid, signal.SIGTERM)
+            server.wait(30)
+    return out
+
+
+def child_operations(prepared: dict[str, Any]) -> dict[str, Any]:
+    """Only the operations through HTTP (the server as a subprocess) and its peak RSS."""
+    import httpx
+
+    out: dict[str, Any] = {"n_points": prepared["n_points"], "load_before": os.getloadavg()[0]}
+    with tempfile.TemporaryDirectory() as scratch:
+        server, url = _server(Path(prepared["cache"]), Path(scratch) / "ops.labels", _free_port())
+        base, token = url.split("/?token=")
+        client = httpx.Client(base_url=base, headers={"X-Semantic3D-Token": token}, timeout=600)
+        try:
+            for _ in range(600):
+                try:
+                    client.get("/api/summary")
+                    break
+                except httpx.TransportError:
+                    time.sleep(0.1)
+            out["operations"] = _operations(client, prepared)
+            out["server_peak_rss_mb"] = _peak_rss_mb(server.pid)
+        finally:
+            os.killpg(server.pid, signal.SIGTERM)
+            server.wait(30)
+    return out
+
+
+def _timed(client: Any, path: str, body: dict[str, Any] | None = None) -> tuple[float, Any]:
+    start = time.perf_counter()
+    answer = client.get(path) if body is None else client.post(path, json=body)
+    seconds = time.perf_counter() - start
+    if answer.status_code != 200:
+        raise RuntimeError(f"{path}: {answer.status_code} {answer.text}")
+    return seconds, answer.json()
+
+
+def _operations(client: Any, prepared: dict[str, Any]) -> dict[str, Any]:
+    """Server time of each operation over every point of the scan (through HTTP)."""
+    scan = client.get("/api/scan").json()
+    origin = np.asarray(scan["hierarchy"]["origin"])
+    station = np.asarray(prepared["station_m"]) - origin
+    ground = (station - (0, 0, prepared["station_m"][2])).tolist()
+    times: dict[str, Any] = {}
+    square = {"view_projection": _top_view(station, 30.0).reshape(-1).tolist(), "polygon": SQUARE}
+    times["split_s"], _ = _timed(client, "/api/split", square)
+    times["undo_split_s"], _ = _timed(client, "/api/undo", {})
+    seeds = [(np.asarray(ground) + d).tolist() for d in ((3, 0, 0), (-2, 2.5, 0), (0, -3, 0))]
+    fit = {
+        "kind": "plane",
+        "seeds": seeds,
+        "tolerance_m": 0.1,
+        "region": {"kind": "sphere", "centre": ground, "radius_m": 15.0},
+    }
+    times["fit_preview_s"], preview = _timed(client, "/api/fit/preview", fit)
+    times["fit_s"], _ = _timed(client, "/api/fit", {**fit, "model": preview["model"]})
+    times["fit_inliers"] = preview["n_inliers"]
+    times["undo_fit_s"], _ = _timed(client, "/api/undo", {})
+    # A facade-sized region away from the scanner: the fit reads only the nodes meeting it.
+    centre = (np.asarray(ground) + np.array([20.0, 5.0, 0.0])).tolist()
+    small = {
+        **fit,
+        "seeds": [
+            (np.asarray(centre) + d).tolist() for d in ((2, 0, 0), (-1.5, 1.5, 0), (0, -2, 0))
+        ],
+        "region": {"kind": "sphere", "centre": centre, "radius_m": 5.0},
+    }
+    times["fit_preview_5m_s"], preview = _timed(client, "/api/fit/preview", small)
+    times["fit_5m_s"], _ = _timed(client, "/api/fit", {**small, "model": preview["model"]})
+    times["fit_5m_inliers"] = preview["n_inliers"]
+    times["reset_s"], _ = _timed(client, "/api/reset", {"scope": "all"})
+    times["assign_whole_scan_s"], _ = _timed(
+        client, "/api/assign", {"value": 2, "confirm_whole_scan": True}
+    )
+    times["undo_assign_s"], _ = _timed(client, "/api/undo", {})
+    times["redo_assign_s"], _ = _timed(client, "/api/redo", {})
+    view = {"scope": "view", "view_projection": _top_view(station, 60.0).reshape(-1).tolist()}
+    times["counts_in_view_s"], _ = _timed(client, "/api/stats", view)
+    times["save_s"], _ = _timed(client, "/api/save", {})
+    return times
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return int(probe.getsockname()[1])
 
 
 def scripted_run(prepared: dict[str, Any]) -> dict[str, Any]:
     """Label buildings (3D workflow) and ground (2D workflow) through the HTTP API."""
-    from fastapi.testclient import TestClient
     from scipy import ndimage
 
     from semantic3d.io import read_labels
     from semantic3d.labelling.app import create_label_app
-    from semantic3d.labelling.session import open_label_session
+    from semantic3d.labelling.opening import open_label_session
 
     cache = Path(prepared["cache"])
     truth = read_labels(prepared["truth"])
@@ -222,8 +426,10 @@ def scripted_run(prepared: dict[str, Any]) -> dict[str, Any]:
     operations = 0
     start = time.perf_counter()
     with tempfile.TemporaryDirectory() as scratch:
-        session = open_label_session(cache, labels_path=Path(scratch) / "script.labels")
-        client = TestClient(create_label_app(session))
+        session = open_label_session(
+            cache, labels_path=Path(scratch) / "script.labels", cache_dir=USER_CACHE
+        )
+        client = _client(create_label_app(session, port=8765))
         origin = np.asarray(client.get("/api/scan").json()["hierarchy"]["origin"])
         local = xyz - origin
 
@@ -331,46 +537,56 @@ def scripted_run(prepared: dict[str, Any]) -> dict[str, Any]:
     }
 
 
+def _child(kind: str, prepared: dict[str, Any]) -> dict[str, Any]:
+    done = subprocess.run(
+        [sys.executable, str(HERE), "--child", kind, "--prepared", json.dumps(prepared)],
+        check=True,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    result: dict[str, Any] = json.loads(done.stdout.strip().splitlines()[-1])
+    return result
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--points", type=int, nargs="+", default=[1_000_000, 10_000_000])
+    parser.add_argument("--points", type=int, nargs="+", default=[10_000_000])
     parser.add_argument("--script-points", type=int, default=1_000_000)
-    parser.add_argument("--child", choices=["measure", "script"])
+    parser.add_argument("--quick", action="store_true", help="1 M points, no scripted run")
+    parser.add_argument("--child", choices=["build", "browser", "operations", "script"])
+    parser.add_argument("--operations-only", action="store_true", help="server operations only")
     parser.add_argument("--prepared")
     args = parser.parse_args()
     if args.child:
         prepared = json.loads(args.prepared)
-        result = child_measure(prepared) if args.child == "measure" else scripted_run(prepared)
-        print(json.dumps(result))
+        run = {
+            "build": child_build,
+            "browser": child_browser,
+            "operations": child_operations,
+            "script": scripted_run,
+        }
+        print(json.dumps(run[args.child](prepared)))
         return
-    import subprocess
-
+    if args.quick:
+        args.points, args.script_points = [1_000_000], 0
+    if args.operations_only:
+        for n in args.points:
+            print(json.dumps(_child("operations", prepare(n)), indent=1), flush=True)
+        return
     rows = []
     for n in args.points:
         prepared = prepare(n)
-        done = subprocess.run(
-            [sys.executable, str(HERE), "--child", "measure", "--prepared", json.dumps(prepared)],
-            check=True,
-            capture_output=True,
-            text=True,
-        )
-        row = json.loads(done.stdout.strip().splitlines()[-1])
-        row["simulate_s"], row["cache_s"] = prepared["simulate_s"], prepared["cache_s"]
+        row = {"simulate_s": prepared["simulate_s"], "cache_s": prepared["cache_s"]}
+        row.update(_child("build", prepared))
+        row.update(_child("browser", prepared))
         rows.append(row)
         print(json.dumps(row, indent=1), flush=True)
-    if not args.script_points:
-        return
-    prepared = prepare(args.script_points)
-    done = subprocess.run(
-        [sys.executable, str(HERE), "--child", "script", "--prepared", json.dumps(prepared)],
-        check=True,
-        capture_output=True,
-        text=True,
-    )
-    script = json.loads(done.stdout.strip().splitlines()[-1])
-    print(json.dumps(script, indent=1))
+    script = _child("script", prepare(args.script_points)) if args.script_points else None
+    if script:
+        print(json.dumps(script, indent=1))
     OUT.mkdir(exist_ok=True)
-    (OUT / "labelling.json").write_text(json.dumps({"sizes": rows, "script": script}, indent=2))
+    name = "labelling-quick.json" if args.quick else "labelling.json"
+    (OUT / name).write_text(json.dumps({"sizes": rows, "script": script}, indent=2))
 
 
 if __name__ == "__main__":

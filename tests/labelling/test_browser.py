@@ -19,7 +19,8 @@ import numpy as np
 import pytest
 
 from semantic3d.io import read_labels
-from semantic3d.labelling.session import LabelSession, open_label_session
+from semantic3d.labelling.opening import open_label_session
+from semantic3d.labelling.session import LabelSession
 from tests.browsers import SOFTWARE_WEBGL_ARGS, chromium
 
 from .conftest import NODE_CAPACITY
@@ -29,26 +30,47 @@ pytestmark = pytest.mark.slow
 HALF_SQUARE_M = 12.0
 
 
+REBOUND_HOST = "rebound.test"
+
+
 @pytest.fixture(scope="module")
 def browser():
-    with chromium(SOFTWARE_WEBGL_ARGS) as browser:
+    # A host name that resolves to 127.0.0.1, as a DNS-rebinding attacker's would.
+    rules = f"--host-resolver-rules=MAP {REBOUND_HOST} 127.0.0.1"
+    with chromium((*SOFTWARE_WEBGL_ARGS, rules)) as browser:
         yield browser
+
+
+def _free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return int(probe.getsockname()[1])
 
 
 class _Server:
     """The app served by uvicorn in a thread of this process, on a free port."""
 
-    def __init__(self, session: LabelSession) -> None:
+    def __init__(self, session: LabelSession, *, record: list | None = None) -> None:
         import uvicorn
 
         from semantic3d.labelling.app import create_label_app
 
-        with socket.socket() as probe:
-            probe.bind(("127.0.0.1", 0))
-            port = probe.getsockname()[1]
-        config = uvicorn.Config(
-            create_label_app(session), host="127.0.0.1", port=port, log_level="warning"
-        )
+        port = _free_port()
+        app = create_label_app(session, port=port)
+        self.port = port
+        self.secret = app.state.secret
+        served = app
+        if record is not None:
+
+            async def served(scope, receive, send):  # type: ignore[no-untyped-def]
+                async def spy(message):  # type: ignore[no-untyped-def]
+                    if message["type"] == "http.response.start":
+                        record.append((scope["method"], scope["path"], message["status"]))
+                    await send(message)
+
+                await app(scope, receive, spy)
+
+        config = uvicorn.Config(served, host="127.0.0.1", port=port, log_level="warning")
         self.server = uvicorn.Server(config)
         self.thread = threading.Thread(target=self.server.run, daemon=True)
         self.thread.start()
@@ -57,7 +79,8 @@ class _Server:
             if time.monotonic() > deadline:
                 raise RuntimeError("the labelling server did not start")
             time.sleep(0.05)
-        self.url = f"http://127.0.0.1:{port}/"
+        self.base = f"http://127.0.0.1:{port}"
+        self.url = f"{self.base}/?token={self.secret}"
 
     def stop(self) -> None:
         self.server.should_exit = True
@@ -96,12 +119,15 @@ def test_polygon_split_plane_fit_assign_undo_save(browser, served, simulated_sca
     server, session, labels_path = served
     artifacts = Path(os.environ.get("SEMANTIC3D_TEST_ARTIFACTS", tmp_path))
     artifacts.mkdir(parents=True, exist_ok=True)
-    page = browser.new_page(viewport={"width": 1200, "height": 800})
+    # bypass_csp: Playwright's wait_for_function evaluates strings, which the page's CSP
+    # forbids; the page itself loads under its CSP in the test of other origins below.
+    page = browser.new_page(viewport={"width": 1200, "height": 800}, bypass_csp=True)
     errors: list[str] = []
     page.on("pageerror", lambda error: errors.append(str(error)))
     try:
         page.goto(server.url)
         _idle(page)
+        assert "token" not in page.url  # the secret left the address bar
         page.screenshot(path=str(artifacts / "labelling-1-opened.png"))
         n = session.n_points
         assert page.inner_text("#working-count") == f"{n:,}"
@@ -212,12 +238,18 @@ def test_the_viewer_shows_prediction_errors_read_only(browser, simulated_scan, t
     )
     server = _Server(session)
     artifacts = Path(os.environ.get("SEMANTIC3D_TEST_ARTIFACTS", tmp_path))
-    page = browser.new_page(viewport={"width": 1000, "height": 700})
+    page = browser.new_page(viewport={"width": 1000, "height": 700}, bypass_csp=True)
     try:
         page.goto(server.url)
         _idle(page)
         assert page.inner_text("#mode-line") == "read-only viewer"
         assert not page.is_visible("#draw-polygon") and not page.is_visible("#assign")
+        for editing in ("#draw-lasso", "#draw-brush", "#fit-preview", "#pick-points", "#save"):
+            assert not page.is_visible(editing)
+        assert page.is_visible("#measure") and page.is_visible("#stats-view")
+        page.click("#stats-working")
+        page.wait_for_function("document.getElementById('stats').textContent.includes('confusion')")
+        assert "overall accuracy" in page.inner_text("#stats")
         page.click("#view-top")
         page.select_option("#colour-mode", "errors")
         page.evaluate(
@@ -235,3 +267,300 @@ def test_the_viewer_shows_prediction_errors_read_only(browser, simulated_scan, t
     red = ((pixels[:, 0] > 180) & (pixels[:, 1] < 80) & (pixels[:, 2] < 80)).sum()
     green = ((pixels[:, 1] > 140) & (pixels[:, 0] < 90) & (pixels[:, 2] < 110)).sum()
     assert red > 50 and green > 50 and green > red  # 70 % right, 30 % wrong
+
+
+_ATTACK = """
+async (target) => {
+  const outcomes = [];
+  for (let i = 0; i < 10; i++) {
+    try { await fetch(`${target}/api/undo`, { method: 'POST', mode: 'no-cors' }); outcomes.push('sent'); }
+    catch (e) { outcomes.push('blocked'); }
+  }
+  try {
+    await fetch(`${target}/api/assign`, {
+      method: 'POST', body: JSON.stringify({ value: 1, confirm_whole_scan: true }),
+      headers: { 'Content-Type': 'application/json', 'X-Semantic3D-Token': 'guess' },
+    });
+    outcomes.push('cors-sent');
+  } catch (e) { outcomes.push('cors-blocked'); }
+  navigator.sendBeacon(`${target}/api/reset`, '{}');
+  const form = document.createElement('form');
+  form.method = 'POST'; form.action = `${target}/api/redo`; form.target = 'sink';
+  const sink = document.createElement('iframe'); sink.name = 'sink';
+  document.body.append(sink, form);
+  form.submit();
+  await new Promise((resolve) => setTimeout(resolve, 500));
+  return outcomes;
+}
+"""
+
+
+def test_pages_of_other_origins_cannot_drive_the_app(browser, simulated_scan, tmp_path):
+    """No-cors POSTs, beacons, form posts and a DNS-rebinding host are all refused."""
+    import http.server
+
+    session = open_label_session(
+        simulated_scan.cache.path,
+        labels_path=tmp_path / "target.labels",
+        node_capacity=NODE_CAPACITY,
+    )
+    session.split(np.diag([0.02, 0.02, -0.001, 1.0]), [(-0.2, -0.2), (0.2, -0.2), (0.2, 0.2)])
+    session.assign(6)
+    before = (session.labels.copy(), list(session.undo_stack))
+    record: list[tuple[str, str, int]] = []
+    server = _Server(session, record=record)
+
+    class Attacker(http.server.BaseHTTPRequestHandler):
+        def do_GET(self) -> None:
+            body = b"<!doctype html><title>elsewhere</title><p>hello</p>"
+            self.send_response(200)
+            self.send_header("Content-Type", "text/html")
+            self.send_header("Content-Length", str(len(body)))
+            self.end_headers()
+            self.wfile.write(body)
+
+        def log_message(self, *args: object) -> None:
+            pass
+
+    attacker = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Attacker)
+    threading.Thread(target=attacker.serve_forever, daemon=True).start()
+    page = browser.new_page()
+    try:
+        page.goto(f"http://127.0.0.1:{attacker.server_address[1]}/")
+        outcomes = page.evaluate(_ATTACK, server.base)
+        assert outcomes.count("sent") == 10 and outcomes[-1] == "cors-blocked"
+        page.wait_for_timeout(300)
+        # DNS rebinding: the attacker's name now points at the app; the app ignores it.
+        rebound = page.goto(f"http://{REBOUND_HOST}:{server.port}/")
+        assert rebound is not None and rebound.status == 421
+        rebound_api = page.evaluate(
+            "async (u) => (await fetch(u, {method: 'POST'})).status",
+            f"http://{REBOUND_HOST}:{server.port}/api/undo",
+        )
+        assert rebound_api == 421
+        # The app's own page, under its Content-Security-Policy, works with the secret.
+        console: list[str] = []
+        page.on("console", lambda message: console.append(message.text))
+        page.goto(server.url)
+        for _ in range(100):
+            if page.evaluate("document.getElementById('status').dataset.idle === 'true'"):
+                break
+            page.wait_for_timeout(100)
+        assert page.evaluate("document.getElementById('error').textContent") == ""
+        assert not [line for line in console if "Content Security Policy" in line], console
+        assert "token" not in page.url
+        page.reload()  # the secret stays with the tab, not in the address
+        name = ""
+        for _ in range(100):
+            name = page.evaluate("document.getElementById('scan-name').textContent")
+            if name != "semantic3d":
+                break
+            page.wait_for_timeout(100)
+        assert name == simulated_scan.cache.path.name
+    finally:
+        page.close()
+        attacker.shutdown()
+        server.stop()
+        session.close()
+    posts = [(path, status) for method, path, status in record if method == "POST"]
+    assert ("/api/undo", 403) in posts and ("/api/reset", 403) in posts  # they did arrive
+    assert ("/api/redo", 403) in posts
+    assert all(status in (403, 421) for _, status in posts), posts
+    np.testing.assert_array_equal(session.labels, before[0])
+    assert session.undo_stack == before[1] and session.redo_stack == []
+
+
+def _offset(base: np.ndarray, dx: float, dy: float, dz: float) -> np.ndarray:
+    return base + np.array([dx, dy, dz])
+
+
+def test_interactions_of_a_surveyor(browser, served, simulated_scan, tmp_path):
+    """Double-click, Backspace, lasso, brush, measure, legends, preview, remembered view, help."""
+    server, session, _ = served
+    page = browser.new_page(viewport={"width": 1200, "height": 800}, bypass_csp=True)
+    errors: list[str] = []
+    page.on("pageerror", lambda error: errors.append(str(error)))
+    page.on("dialog", lambda dialog: dialog.accept())
+    try:
+        page.goto(server.url)
+        _idle(page)
+        origin = session.origin
+        station = np.array(simulated_scan.station_m) - origin
+        n = session.n_points
+
+        # Help lists every key the page handles.
+        page.keyboard.press("h")
+        assert page.is_visible("#help")
+        keys = page.inner_text("#help-keys")
+        for key in ("Ctrl+Z", "Backspace", "double-click", "Escape", "V", "M", "L", "B"):
+            assert key in keys
+        page.keyboard.press("Escape")
+        assert not page.is_visible("#help")
+
+        # Legends for every colour mode; a height range the user sets.
+        for mode, expected in (
+            ("class", "buildings"),
+            ("rgb", "as scanned"),
+            ("intensity", "intensity"),
+            ("height", "height"),
+        ):
+            page.select_option("#colour-mode", mode)
+            assert expected in page.inner_text("#legend")
+        page.fill("#range-low", f"{origin[2] - 1:.2f}")
+        page.fill("#range-high", f"{origin[2] + 3:.2f}")
+        page.dispatch_event("#range-high", "change")
+        assert f"{origin[2] + 3:.2f}" in page.inner_text("#legend")
+        page.select_option("#colour-mode", "class")
+        page.evaluate("document.activeElement.blur()")
+
+        # Polygon: Backspace removes a vertex, a double click closes it.
+        page.keyboard.press("t")
+        _idle(page)
+        assert page.evaluate("window.labelApp.viewer.view") == "top"
+        page.keyboard.press("d")
+        h = HALF_SQUARE_M
+        corners = [_offset(station, dx, dy, 0.0) for dx, dy in ((-h, -h), (h, -h), (h, h), (-h, h))]
+        for corner in corners[:3]:
+            page.mouse.click(*_client(page, corner))
+        page.mouse.click(*_client(page, _offset(station, 0.0, -1.4 * h, 0.0)))  # a wrong vertex
+        page.keyboard.press("Backspace")
+        assert page.evaluate("window.labelApp.tool.polygon.length") == 3
+        page.mouse.dblclick(*_client(page, corners[3]))
+        assert page.evaluate("window.labelApp.tool.closed")
+        assert page.evaluate("window.labelApp.tool.polygon.length") == 4
+        page.click("#keep-inside")
+        page.wait_for_function(f"document.getElementById('working-count').textContent !== '{n:,}'")
+        _idle(page)
+        after_polygon = int(session.working.sum())
+        assert 0 < after_polygon < n
+
+        # Lasso: drag around the station's neighbourhood, keep what is inside.
+        page.keyboard.press("l")
+        ring = [
+            _offset(station, 6 * np.cos(a), 6 * np.sin(a), 0.0)
+            for a in np.linspace(0, 2 * np.pi, 24)
+        ]
+        page.mouse.move(*_client(page, ring[0]))
+        page.mouse.down()
+        for point in ring[1:]:
+            page.mouse.move(*_client(page, point))
+        page.mouse.up()
+        page.click("#keep-inside")
+        page.wait_for_function(
+            f"document.getElementById('working-count').textContent !== '{after_polygon:,}'"
+        )
+        _idle(page)
+        xy = np.asarray(simulated_scan.cache.xyz)[:, :2] - origin[:2] - station[:2]
+        radius = np.hypot(xy[:, 0], xy[:, 1])
+        working = session.working.copy()
+        assert 0 < working.sum() < after_polygon
+        assert (radius[working] < 6.5).all() and working[radius < 5.0].mean() > 0.95
+
+        # Brush: a stroke across the middle, keep what is outside it.
+        page.keyboard.press("b")
+        page.mouse.move(*_client(page, _offset(station, -7.0, 0.0, 0.0)))
+        page.mouse.down()
+        page.mouse.move(*_client(page, _offset(station, 7.0, 0.0, 0.0)), steps=8)
+        page.mouse.up()
+        page.click("#keep-outside")
+        page.wait_for_function(
+            f"document.getElementById('working-count').textContent !== '{int(working.sum()):,}'"
+        )
+        _idle(page)
+        assert 0 < session.working.sum() < working.sum()
+        assert session.journal.operations()[-1]["operation"]["name"] == "split_mask"
+
+        # Measure two points: georeferenced coordinates, distance and height between them.
+        page.click("#frame-working")
+        _idle(page)
+        page.keyboard.press("m")
+        ground = station - (0.0, 0.0, simulated_scan.station_m[2])
+        local = np.asarray(simulated_scan.cache.xyz) - origin
+        near = np.flatnonzero(
+            (np.abs(local[:, 2] - ground[2]) < 0.3) & (np.abs(radius - 4.0) < 0.5) & session.working
+        )
+        a = local[near[0]]
+        b = local[near[np.argmax(np.linalg.norm(local[near] - a, axis=1))]]
+        for point in (a, b):
+            page.mouse.click(*_client(page, point))
+        text = page.inner_text("#measure-result")
+        assert text.count("#") >= 3 and "distance" in text and "height" in text, text
+        first_x = float(text.split("x ")[1].split()[0])
+        assert abs(first_x - (origin[0] + a[0])) < 0.05  # the scan's own frame
+        distance = float(text.split("distance ")[1].split()[0])
+        assert abs(distance - np.linalg.norm(b - a)) < 0.1
+        page.keyboard.press("Escape")
+
+        # Fit with a preview: picks, a sphere region shown, then keep the previewed inliers.
+        page.click("#reset-all")
+        _idle(page)
+        page.keyboard.press("p")
+        for dx, dy in ((3.0, 0.5), (-2.0, 2.5), (0.5, -3.0)):
+            page.mouse.click(*_client(page, _offset(ground, dx, dy, 0.0)))
+        page.click("#fit-preview")
+        page.wait_for_function(
+            "document.getElementById('fit-result').textContent.startsWith('preview')"
+        )
+        shown = int(page.inner_text("#fit-result").split(", ")[1].split()[0].replace(",", ""))
+        assert page.evaluate("window.labelApp.viewer.regionObject !== null")
+        page.click("#fit-model")
+        page.wait_for_function(
+            "!document.getElementById('fit-result').textContent.startsWith('preview')"
+        )
+        _idle(page)
+        assert int(session.working.sum()) == shown
+        assert session.journal.operations()[-1]["operation"]["region"]["kind"] == "sphere"
+
+        # The view, colour mode and budget come back after a reload.
+        page.keyboard.press("v")  # a free 2D view along the current direction
+        page.select_option("#colour-mode", "height")
+        page.select_option("#point-budget", "500000")
+        _idle(page)
+        before = page.evaluate("window.labelApp.viewer.viewState()")
+        assert before["view"] == "free2d"
+        page.reload()
+        _idle(page)
+        after = page.evaluate("window.labelApp.viewer.viewState()")
+        assert after["view"] == "free2d"
+        np.testing.assert_allclose(after["position"], before["position"], atol=1e-3)
+        assert page.input_value("#colour-mode") == "height"
+        assert page.input_value("#point-budget") == "500000"
+        assert page.is_visible("#scale-bar") and "m" in page.inner_text("#scale-text")
+    finally:
+        page.close()
+    assert not errors, errors
+
+
+def test_a_long_tour_stays_under_the_memory_budget(browser, served):
+    """Nodes are evicted (least recently shown first) to keep the loaded points bounded."""
+    server, session, _ = served
+    page = browser.new_page(viewport={"width": 900, "height": 600}, bypass_csp=True)
+    try:
+        page.goto(server.url)
+        _idle(page)
+        page.evaluate(
+            "() => { const v = window.labelApp.viewer; v.setBudget(6000); v.memoryBudget = 9000; }"
+        )
+        largest = max(node.count for node in session.lod.nodes)
+        peaks: list[int] = []
+        trace: list[dict] = []
+        for step in range(12):
+            page.evaluate(
+                """async (k) => { const v = window.labelApp.viewer, f = v.frame;
+                  const c = f.getCenter(v.centre.clone()), size = f.max.x - f.min.x;
+                  const a = k * 0.9, r = size * (0.03 + 0.03 * (k % 4));
+                  v.controls.target.set(c.x + 0.35 * size * Math.cos(a), c.y + 0.35 * size * Math.sin(a), c.z);
+                  const t = v.controls.target;
+                  v.camera.position.set(t.x + r, t.y - r, t.z + r * 0.5);
+                  v.controls.update(); v.settleNow();
+                  return new Promise((done) => requestAnimationFrame(() => requestAnimationFrame(done))); }""",
+                step,
+            )
+            _idle(page)
+            peaks.append(page.evaluate("window.labelApp.viewer.stats().loadedPoints"))
+            trace.append(page.evaluate("window.labelApp.viewer.stats()"))
+        evicted = page.evaluate("window.labelApp.viewer.stats().evicted")
+    finally:
+        page.close()
+    assert evicted > 0, (peaks, largest, trace)
+    assert max(peaks) <= 9000 + 2 * largest, (peaks, largest)

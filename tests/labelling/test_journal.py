@@ -11,10 +11,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from semantic3d.core.errors import OutputExistsError
 from semantic3d.io import read_labels
 from semantic3d.labelling.errors import JournalError, OperationError
 from semantic3d.labelling.journal import Journal
-from semantic3d.labelling.session import journal_path_for, open_label_session
+from semantic3d.labelling.opening import journal_path_for, open_label_session
 
 from .conftest import NODE_CAPACITY
 
@@ -73,7 +74,7 @@ def test_a_crash_mid_operation_loses_only_that_operation(simulated_scan, tmp_pat
         f"""
         import os, signal
         import numpy as np
-        from semantic3d.labelling.session import open_label_session
+        from semantic3d.labelling.opening import open_label_session
         s = open_label_session({str(simulated_scan.cache.path)!r},
                                labels_path={str(labels_path)!r}, node_capacity={NODE_CAPACITY})
         s.split(np.diag([0.02, 0.02, -0.001, 1.0]), {SQUARE!r})
@@ -105,10 +106,81 @@ def test_a_labels_file_changed_elsewhere_starts_a_new_journal(simulated_scan, tm
     session.save()
     session.close()
     labels_path.write_text("4\n" * simulated_scan.cache.n_points)  # edited by another tool
-    reopened = _open(simulated_scan, labels_path)
+    with pytest.raises(OutputExistsError, match="not written by a labelling session"):
+        _open(simulated_scan, labels_path)  # no longer ours: never written over untold
+    assert labels_path.read_text() == "4\n" * simulated_scan.cache.n_points
+    reopened = open_label_session(
+        simulated_scan.cache.path,
+        labels_path=labels_path,
+        overwrite=True,
+        node_capacity=NODE_CAPACITY,
+    )
     assert (reopened.labels == 4).all() and reopened.undo_stack == []
-    assert len(list(tmp_path.glob("edited.labels.journal.stale-*"))) == 1
+    assert len(list(tmp_path.glob("edited.labels.journal.stale-????????"))) == 1
     reopened.close()
+
+
+def test_a_touched_but_unchanged_file_keeps_its_journal(simulated_scan, tmp_path) -> None:
+    labels_path = tmp_path / "touched.labels"
+    session = _open(simulated_scan, labels_path)
+    session.split(TOP_VIEW, SQUARE)
+    session.assign(1)
+    session.save()
+    session.close()
+    os.utime(labels_path, ns=(1, 1))  # copied back, touched: same bytes, new identity
+    resumed = _open(simulated_scan, labels_path)
+    assert len(resumed.undo_stack) == 2
+    resumed.close()
+
+
+_KILL_AFTER_RENAME = """
+import os, signal
+import numpy as np
+from semantic3d.io import staging
+from semantic3d.labelling.opening import open_label_session
+
+rename = staging.StagedPath.commit
+def commit_then_die(self):
+    rename(self)          # the new file is in place...
+    os.kill(os.getpid(), signal.SIGKILL)   # ...and the process dies before the journal hears of it
+s = open_label_session({cache!r}, labels_path={labels!r}, node_capacity={capacity})
+s.split(np.diag([0.02, 0.02, -0.001, 1.0]), {square!r})
+s.assign(6)
+{first_save}
+s.reset(scope="unlabelled")
+s.assign(3)
+staging.StagedPath.commit = commit_then_die
+s.save()
+"""
+
+
+@pytest.mark.parametrize("saved_before", [False, True])
+def test_a_kill_between_the_rename_and_the_journal_keeps_the_history(
+    simulated_scan, tmp_path: Path, saved_before: bool
+) -> None:
+    labels_path = tmp_path / "killed.labels"
+    script = _KILL_AFTER_RENAME.format(
+        cache=str(simulated_scan.cache.path),
+        labels=str(labels_path),
+        capacity=NODE_CAPACITY,
+        square=SQUARE,
+        first_save="s.save()" if saved_before else "",
+    )
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, check=False, env=env)
+    assert done.returncode == -9, done.stderr.decode()
+    on_disk = read_labels(labels_path)
+    assert (on_disk == 3).any() and (on_disk == 6).any()  # the rename happened
+    resumed = _open(simulated_scan, labels_path)
+    np.testing.assert_array_equal(resumed.labels, on_disk)
+    assert len(resumed.undo_stack) == 4  # split, assign, reset, assign: nothing thrown away
+    assert not list(tmp_path.glob("*.stale-*"))
+    resumed.undo()
+    assert not (resumed.labels == 3).any()
+    resumed.close()
+    again = _open(simulated_scan, labels_path)  # the new identity was recorded on resume
+    assert len(again.undo_stack) == 3 and len(again.redo_stack) == 1
+    again.close()
 
 
 def test_a_journal_of_another_scan_is_refused(tmp_path: Path) -> None:

@@ -11,7 +11,7 @@ from typer.testing import CliRunner
 from semantic3d.cli.app import app
 from semantic3d.labelling.errors import LabelFileError
 from semantic3d.labelling.labelfile import read_label_file
-from semantic3d.labelling.session import open_label_session
+from semantic3d.labelling.opening import open_label_session
 
 from .conftest import NODE_CAPACITY
 
@@ -41,10 +41,22 @@ def test_bad_labels_files_are_refused_and_nothing_is_written(simulated_scan, tmp
             read_label_file(path, n_points=n)
         with pytest.raises(LabelFileError, match=message):
             open_label_session(
-                simulated_scan.cache.path, labels_path=path, node_capacity=NODE_CAPACITY
+                simulated_scan.cache.path,
+                labels_path=tmp_path / "out.labels",
+                start_from=path,
+                node_capacity=NODE_CAPACITY,
+            )
+        with pytest.raises(LabelFileError, match=message):
+            open_label_session(
+                simulated_scan.cache.path,
+                labels_path=path,
+                overwrite=True,
+                node_capacity=NODE_CAPACITY,
             )
         assert path.read_bytes() == before
         assert not Path(f"{path}.journal").exists()
+        assert not (tmp_path / "out.labels").exists()
+        assert not (tmp_path / "out.labels.journal").exists()
     good = tmp_path / "good.labels"
     good.write_text("".join(f"{v}\n" for v in np.arange(n) % 9))
     np.testing.assert_array_equal(read_label_file(good, n_points=n), np.arange(n) % 9)
@@ -53,8 +65,9 @@ def test_bad_labels_files_are_refused_and_nothing_is_written(simulated_scan, tmp
 def test_cli_refuses_a_bad_labels_file_with_one_line(simulated_scan, tmp_path) -> None:
     n = simulated_scan.cache.n_points
     path, _ = _bad_files(tmp_path, n)[2]
+    out = tmp_path / "out.labels"
     for command in (
-        ["label", str(simulated_scan.cache.path), "--labels", str(path)],
+        ["label", str(simulated_scan.cache.path), "--from", str(path), "--labels", str(out)],
         ["view", str(simulated_scan.cache.path), "--pred", str(path)],
     ):
         result = CliRunner().invoke(app, command)

@@ -52,3 +52,43 @@ def test_build_does_not_depend_on_chunking_and_is_reused(simulated_scan, tmp_pat
     stamp = manifest.stat().st_mtime_ns
     again = open_lod(cache, capacity=NODE_CAPACITY, progress=lambda *a: 1 / 0)  # no rebuild
     assert again.directory == first.directory and manifest.stat().st_mtime_ns == stamp
+
+
+def _rank(indices: np.ndarray) -> np.ndarray:
+    """The reference rank: splitmix64 of the scan position, as a float in [0, 1)."""
+    z = indices.astype(np.uint64) + np.uint64(0x9E3779B97F4A7C15)
+    with np.errstate(over="ignore"):
+        z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+        z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+        z = z ^ (z >> np.uint64(31))
+    return (z >> np.uint64(11)).astype(np.float64) / float(1 << 53)
+
+
+def test_the_compiled_build_follows_the_sampling_rule(simulated_scan, tmp_path) -> None:
+    """Each point stays in the first node on its path where rank * count < capacity.
+
+    ``count`` is the number of scan points in the node's cube (leaf cells as integers).
+    """
+    lod = build_lod(simulated_scan.cache.path, tmp_path / "rule", capacity=NODE_CAPACITY)
+    depth = lod.max_depth
+    scale = (1 << depth) / lod.cube_size
+    xyz = np.asarray(simulated_scan.cache.xyz)
+    leaf = np.clip(np.floor((xyz - lod.cube_min) * scale).astype(np.int64), 0, (1 << depth) - 1)
+    parent = {c: node.id for node in lod.nodes for c in node.children}
+    local_min = lod.cube_min - lod.origin
+
+    def cube_count(node) -> int:
+        edge = lod.cube_size / (1 << node.depth)
+        cell = np.round((np.array(node.bounds[:3]) - local_min) / edge).astype(np.int64)
+        inside = (leaf >> (depth - node.depth)) == cell
+        return int(inside.all(axis=1).sum())
+
+    counts = {node.id: cube_count(node) for node in lod.nodes}
+    for node in lod.nodes:
+        ranks = _rank(lod.node_indices(node.id))
+        if node.children:  # an internal node keeps exactly the points under its threshold
+            assert (ranks * counts[node.id] < NODE_CAPACITY).all()
+        ancestor = parent.get(node.id)
+        while ancestor is not None:  # ...and every ancestor let them pass
+            assert (ranks * counts[ancestor] >= NODE_CAPACITY).all()
+            ancestor = parent.get(ancestor)

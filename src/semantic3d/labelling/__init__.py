@@ -4,7 +4,16 @@
 - :mod:`~semantic3d.labelling.geometry`: polygon splits through a camera, RANSAC fits.
 - :mod:`~semantic3d.labelling.journal`: the append-only SQLite journal (undo, redo, resume).
 - :mod:`~semantic3d.labelling.session`: class layers, the working set, operations, save.
-- :mod:`~semantic3d.labelling.app`: ``create_label_app(session)``, the FastAPI app and page.
+- :mod:`~semantic3d.labelling.selections` / :mod:`~semantic3d.labelling.fits`: the 2D
+  (polygon, lasso, brush) and 3D (model fits with a region and a preview) workflows.
+- :mod:`~semantic3d.labelling.delta`: an operation's change as packed bit masks.
+- :mod:`~semantic3d.labelling.progress`: progress and cancel of the running operation.
+- :mod:`~semantic3d.labelling.stats`: counts and confusion of the working set or the view.
+- :mod:`~semantic3d.labelling.saving`: where a session may write; saves in step with the journal.
+- :mod:`~semantic3d.labelling.opening`: caches, which labels are read, where saves go.
+- :mod:`~semantic3d.labelling.cachedir`: the per-user cache folder (never beside the data).
+- :mod:`~semantic3d.labelling.security`: loopback Host, per-launch secret, same-origin writes.
+- :mod:`~semantic3d.labelling.app`: ``create_label_app(session, port=...)``, the app and page.
 
 Names are loaded on first use; the app needs the ``label`` extra (FastAPI, uvicorn).
 """
@@ -27,7 +36,8 @@ if TYPE_CHECKING:
     from semantic3d.labelling.journal import Journal
     from semantic3d.labelling.labelfile import read_label_file
     from semantic3d.labelling.lod import LodIndex, build_lod, open_lod
-    from semantic3d.labelling.session import LabelSession, open_label_session
+    from semantic3d.labelling.opening import open_label_session, plan_labels
+    from semantic3d.labelling.session import LabelSession
 
 __all__ = [
     "Journal",
@@ -42,6 +52,7 @@ __all__ = [
     "fit_model",
     "open_label_session",
     "open_lod",
+    "plan_labels",
     "read_label_file",
     "select_in_polygon",
 ]
@@ -62,6 +73,7 @@ __getattr__, __dir__ = lazy_exports(
         "build_lod": "semantic3d.labelling.lod",
         "open_lod": "semantic3d.labelling.lod",
         "LabelSession": "semantic3d.labelling.session",
-        "open_label_session": "semantic3d.labelling.session",
+        "open_label_session": "semantic3d.labelling.opening",
+        "plan_labels": "semantic3d.labelling.opening",
     },
 )

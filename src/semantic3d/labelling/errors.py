@@ -19,3 +19,11 @@ class OperationError(Semantic3DError, ValueError):
 
 class ReadOnlyError(Semantic3DError, PermissionError):
     """A change was asked of a read-only viewer session."""
+
+
+class WholeScanError(OperationError):
+    """An assignment would change the whole scan and was not confirmed."""
+
+
+class OperationCancelledError(OperationError):
+    """The user cancelled a running operation before it changed anything."""

@@ -397,10 +397,12 @@ def fit_model(
 ) -> FitResult:
     """Fit a ``kind`` model to ``points`` ``(n, 3)``: RANSAC, then least squares on inliers.
 
-    ``seeds`` (points the user picked) steer the search: a hypothesis counts only if most
-    seeds lie within ``3 * tolerance_m`` of it, and the seeds' own model (when there are
-    enough of them) is the first hypothesis. Raises :class:`ShapeError` for too few points
-    or a non-positive tolerance.
+    ``seeds`` (points the user picked) constrain the search: the model returned passes
+    within ``tolerance_m`` of **every** seed. The seeds' own least-squares model (when
+    there are enough of them) is the first hypothesis, a hypothesis counts only if every
+    seed lies within ``tolerance_m`` of it, and a least-squares refinement is kept only
+    while it still does. Raises :class:`ShapeError` for too few points, a non-positive
+    tolerance, or when no model passes through all the seeds.
     """
     kind = ModelKind(kind)
     xyz = np.asarray(points, np.float64)
@@ -435,15 +437,20 @@ def fit_model(
     def acceptable(model: Model) -> bool:
         if seed_xyz is None or len(seed_xyz) == 0:
             return True
-        near = model.distance(seed_xyz) <= 3 * tolerance_m
-        return bool(near.mean() >= 0.5)
+        return bool((model.distance(seed_xyz) <= tolerance_m).all())
 
     best: Model | None = None
     best_score = -1
     if seed_xyz is not None and len(seed_xyz) >= size:
-        candidate = propose(seed_xyz[:size] if kind is not ModelKind.SPHERE else seed_xyz)
-        if candidate is not None:
-            best, best_score = candidate, int((candidate.distance(sample) <= tolerance_m).sum())
+        first = [propose(seed_xyz[:size] if kind is not ModelKind.SPHERE else seed_xyz)]
+        if len(seed_xyz) > size:
+            first.append(_refine(kind, first[0], seed_xyz) if first[0] is not None else None)
+        for candidate in first:
+            if candidate is None or not acceptable(candidate):
+                continue
+            score = int((candidate.distance(sample) <= tolerance_m).sum())
+            if score > best_score:
+                best, best_score = candidate, score
     for _ in range(iterations):
         candidate = propose(sample[rng.choice(len(sample), size, replace=False)])
         if candidate is None or not acceptable(candidate):
@@ -452,13 +459,22 @@ def fit_model(
         if score > best_score:
             best, best_score = candidate, score
     if best is None:
-        raise ShapeError(f"points: found no {kind.value} through the given points")
+        n_seeds = 0 if seed_xyz is None else len(seed_xyz)
+        raise ShapeError(
+            f"points: found no {kind.value} within {tolerance_m:g} m of all {n_seeds} picked "
+            "points (raise the tolerance or pick again)"
+            if n_seeds
+            else f"points: found no {kind.value} through the given points"
+        )
     model = best
     for _ in range(3):
         inliers = model.distance(local) <= tolerance_m
         if inliers.sum() < minimum:
             break
-        model = _refine(kind, model, local[inliers])
+        refined = _refine(kind, model, local[inliers])
+        if not acceptable(refined):
+            break
+        model = refined
     distances = model.distance(local)
     inliers = distances <= tolerance_m
     rms = float(np.sqrt(np.mean(distances[inliers] ** 2))) if inliers.any() else float("nan")

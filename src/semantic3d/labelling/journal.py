@@ -5,6 +5,8 @@ parameters, JSON) and its exact *delta*: which points changed label (old and new
 and which points entered or left the working set. ``undo`` / ``redo`` entries name the
 ``apply`` entry they revert or reapply; ``checkpoint`` entries hold the whole state
 (labels and working set, compressed), written when the journal starts and at each save.
+Deltas are packed bit masks (:mod:`~semantic3d.labelling.delta`); payloads of the first
+format (int64 indices in ``np.savez``) are still read.
 
 State = the last checkpoint + every later entry's delta, replayed in order; the undo and
 redo stacks are rebuilt from the entry kinds alone. Each entry is one SQLite transaction in
@@ -17,7 +19,9 @@ from __future__ import annotations
 import io
 import json
 import sqlite3
+import struct
 import time
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -25,9 +29,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from semantic3d.labelling.delta import Delta, bits_from_mask
 from semantic3d.labelling.errors import JournalError
 
-__all__ = ["Delta", "Journal", "JournalState"]
+__all__ = ["Delta", "Journal", "JournalState"]  # Delta: re-exported from delta
 
 JOURNAL_VERSION = 1
 
@@ -44,81 +49,37 @@ CREATE TABLE IF NOT EXISTS entries (
 """
 
 
-@dataclass(frozen=True, slots=True)
-class Delta:
-    """What one operation changed; applying it forwards or backwards is exact.
-
-    Attributes:
-        changed: indices of the points whose label changed (sorted).
-        old_labels / new_labels: their label values before and after.
-        working_flip: indices of the points that entered or left the working set.
-    """
-
-    changed: NDArray[np.int64]
-    old_labels: NDArray[np.uint8]
-    new_labels: NDArray[np.uint8]
-    working_flip: NDArray[np.int64]
-
-    @classmethod
-    def between(
-        cls,
-        labels_before: NDArray[np.uint8],
-        labels_after: NDArray[np.uint8],
-        working_before: NDArray[np.bool_],
-        working_after: NDArray[np.bool_],
-    ) -> Delta:
-        """The delta from one state to another."""
-        changed = np.flatnonzero(labels_before != labels_after)
-        return cls(
-            changed,
-            labels_before[changed],
-            labels_after[changed],
-            np.flatnonzero(working_before != working_after),
-        )
-
-    @property
-    def is_empty(self) -> bool:
-        return self.changed.size == 0 and self.working_flip.size == 0
-
-    def apply(self, labels: NDArray[np.uint8], working: NDArray[np.bool_]) -> None:
-        """Redo the change in place."""
-        labels[self.changed] = self.new_labels
-        working[self.working_flip] ^= True
-
-    def revert(self, labels: NDArray[np.uint8], working: NDArray[np.bool_]) -> None:
-        """Undo the change in place."""
-        labels[self.changed] = self.old_labels
-        working[self.working_flip] ^= True
-
-    def to_bytes(self) -> bytes:
-        buffer = io.BytesIO()
-        np.savez_compressed(
-            buffer,
-            changed=_delta_code(self.changed),
-            old=self.old_labels,
-            new=self.new_labels,
-            flip=_delta_code(self.working_flip),
-        )
-        return buffer.getvalue()
-
-    @classmethod
-    def from_bytes(cls, data: bytes) -> Delta:
-        with np.load(io.BytesIO(data), allow_pickle=False) as arrays:
-            return cls(
-                _delta_decode(arrays["changed"]),
-                arrays["old"],
-                arrays["new"],
-                _delta_decode(arrays["flip"]),
-            )
+_CHECKPOINT_MAGIC = b"S3DC"
 
 
-def _delta_code(indices: NDArray[np.int64]) -> NDArray[np.int64]:
-    # Sorted indices as gaps: long runs of neighbours compress to almost nothing.
-    return np.diff(indices, prepend=0) if indices.size else indices
+def _checkpoint_bytes(labels: NDArray[np.uint8], working: NDArray[np.bool_]) -> bytes:
+    labels_part = zlib.compress(memoryview(np.ascontiguousarray(labels)), 1)  # type: ignore[arg-type]
+    working_part = zlib.compress(bits_from_mask(working).tobytes(), 1)
+    header = json.dumps(
+        {"n_points": int(labels.size), "sizes": [len(labels_part), len(working_part)]}
+    )
+    encoded = header.encode()
+    return b"".join(
+        [_CHECKPOINT_MAGIC, struct.pack("<I", len(encoded)), encoded, labels_part, working_part]
+    )
 
 
-def _delta_decode(gaps: NDArray[np.int64]) -> NDArray[np.int64]:
-    return np.cumsum(gaps).astype(np.int64) if gaps.size else gaps.astype(np.int64)
+def _checkpoint_arrays(
+    payload: bytes, n_points: int
+) -> tuple[NDArray[np.uint8], NDArray[np.bool_]]:
+    if not payload.startswith(_CHECKPOINT_MAGIC):  # the first format: np.savez_compressed
+        with np.load(io.BytesIO(payload), allow_pickle=False) as arrays:
+            labels = np.array(arrays["labels"], np.uint8)
+            working = np.unpackbits(arrays["working"], count=n_points).astype(bool)
+        return labels, working
+    (length,) = struct.unpack_from("<I", payload, 4)
+    header = json.loads(payload[8 : 8 + length])
+    at = 8 + length
+    first, second = header["sizes"]
+    labels = np.frombuffer(zlib.decompress(payload[at : at + first]), np.uint8).copy()
+    bits = np.frombuffer(zlib.decompress(payload[at + first : at + first + second]), np.uint8)
+    working = np.unpackbits(bits, count=n_points, bitorder="little").view(bool)
+    return labels, working
 
 
 @dataclass(slots=True)
@@ -159,6 +120,21 @@ class Journal:
                 f"scan {meta.get('scan_id')} ({meta.get('n_points')} points)",
                 path=str(self.path),
             )
+
+    @staticmethod
+    def read_meta(path: str | Path) -> dict[str, Any] | None:
+        """The meta values of the journal at ``path`` without changing it; ``None`` if unreadable."""
+        try:
+            connection = sqlite3.connect(f"{Path(path).resolve().as_uri()}?mode=ro", uri=True)
+        except sqlite3.Error:
+            return None
+        try:
+            rows = connection.execute("SELECT key, value FROM meta").fetchall()
+            return {key: json.loads(value) for key, value in rows}
+        except (sqlite3.Error, ValueError):
+            return None
+        finally:
+            connection.close()
 
     # -- meta ---------------------------------------------------------------------------------
 
@@ -216,13 +192,12 @@ class Journal:
         meta: dict[str, Any] | None = None,
     ) -> int:
         """Record the whole state (and optionally meta values) in one transaction."""
-        buffer = io.BytesIO()
-        np.savez_compressed(buffer, labels=labels, working=np.packbits(working))
+        payload = _checkpoint_bytes(labels, working)
         with self._transaction():
             cursor = self._connection.execute(
                 "INSERT INTO entries (kind, operation, payload, created_s) "
                 "VALUES ('checkpoint', ?, ?, ?)",
-                (json.dumps({"note": note}), buffer.getvalue(), time.time()),
+                (json.dumps({"note": note}), payload, time.time()),
             )
             if meta:
                 self._write_meta(meta)
@@ -235,7 +210,7 @@ class Journal:
         ).fetchone()
         if row is None:
             raise JournalError(f"expected apply entry #{entry_id}, found none", path=str(self.path))
-        return Delta.from_bytes(row[0])
+        return Delta.from_bytes(row[0], n_points=self.n_points)
 
     def operations(self) -> list[dict[str, Any]]:
         """Every entry, oldest first, without payloads (for the history panel)."""
@@ -264,9 +239,7 @@ class Journal:
         payload = self._connection.execute(
             "SELECT payload FROM entries WHERE id = ?", (last_checkpoint,)
         ).fetchone()[0]
-        with np.load(io.BytesIO(payload), allow_pickle=False) as arrays:
-            labels = np.array(arrays["labels"], np.uint8)
-            working = np.unpackbits(arrays["working"], count=self.n_points).astype(bool)
+        labels, working = _checkpoint_arrays(payload, self.n_points)
         state = JournalState(labels, working, n_entries=len(rows))
         for entry_id, kind, target in rows:
             after = entry_id > last_checkpoint

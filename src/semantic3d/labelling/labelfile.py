@@ -15,9 +15,10 @@ from numpy.typing import NDArray
 
 from semantic3d.core.classes import N_CLASSES
 from semantic3d.core.errors import DataFormatError
-from semantic3d.io.cache import CachedScan, open_cache
+from semantic3d.io.cache import CachedScan, is_cache_current, open_cache
 from semantic3d.io.conversion import build_cache
 from semantic3d.io.formats import PointFormat, detect_format
+from semantic3d.labelling.cachedir import entry_name
 from semantic3d.labelling.errors import LabelFileError
 
 __all__ = ["build_cache_if_needed", "read_label_file"]
@@ -65,9 +66,17 @@ def read_label_file(path: Path, *, n_points: int) -> NDArray[np.uint8]:
 
 
 def build_cache_if_needed(
-    scan_path: str | Path, *, progress: Callable[[str, int, int], None] | None = None
+    scan_path: str | Path,
+    *,
+    cache_dir: Path,
+    progress: Callable[[str, int, int], None] | None = None,
 ) -> CachedScan:
-    """The cache of ``scan_path``: the folder itself, or ``NAME.cache`` beside a point file."""
+    """The cache of ``scan_path``, built under ``cache_dir`` and never beside the scan.
+
+    A cache folder is opened as it is. For a point file, a current ``NAME.cache`` the user
+    built beside it is read (not written); otherwise the cache lives in ``cache_dir``
+    under a name keyed by the file's resolved path, and is rebuilt when the file changes.
+    """
     path = Path(scan_path)
     if detect_format(path) is PointFormat.CACHE:
         return open_cache(path)
@@ -80,4 +89,8 @@ def build_cache_if_needed(
         if progress is not None:
             progress("cache", done, total)
 
-    return build_cache(path, path.with_suffix(".cache"), progress=report)
+    beside = path.with_suffix(".cache")
+    if beside.is_dir() and is_cache_current(beside, path):
+        return open_cache(beside)
+    cache_dir.mkdir(parents=True, exist_ok=True)
+    return build_cache(path, cache_dir / f"{entry_name(path)}.cache", progress=report)

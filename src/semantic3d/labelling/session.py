@@ -6,40 +6,63 @@ and ``working`` (the points the next operation acts on). Geometry runs over ever
 point, streamed from the cache's ``xyz.npy`` in blocks, never over what the screen shows:
 
 - ``split``: keep the working points inside (or outside) a polygon drawn in a fixed view;
-- ``fit``: fit a plane / line / cylinder / sphere near picked points, keep its inliers;
+- ``fit``: fit a plane / line / cylinder / sphere through picked points, keep its inliers
+  (inside an optional region); ``fit_preview`` shows them first without changing anything;
 - ``assign``: move the working points to a class layer (locked layers are never changed);
 - ``reset``: the working set becomes every editable point (or every unlabelled one);
 - ``move_layer``: move a whole layer to another.
 
-Every operation is one entry of the :class:`~semantic3d.labelling.journal.Journal`; the
+Every operation is a compiled pass (:mod:`~semantic3d.labelling._op_kernels`) writing a
+packed :class:`~semantic3d.labelling.delta.Delta`, journalled before it is applied; the
 session state is what the journal replays to, so reopening resumes where it stopped.
-Memory: two bytes per point (labels and working set) plus one block of coordinates.
+Operations report progress per block and can be cancelled until they commit
+(:mod:`~semantic3d.labelling.progress`).
+
+Memory: two bytes per point (labels, working set), one byte more with a prediction, one
+block of coordinates, and per operation two bit masks (1/8 byte per point each) plus the old
+label of each point it relabels.
 """
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import threading
-import uuid
-from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from semantic3d.core.classes import N_CLASSES
-from semantic3d.core.errors import OutputExistsError
 from semantic3d.io.cache import CachedScan
-from semantic3d.labelling import geometry
-from semantic3d.labelling.errors import OperationError, ReadOnlyError
-from semantic3d.labelling.journal import Delta, Journal
-from semantic3d.labelling.labelfile import build_cache_if_needed, read_label_file
-from semantic3d.labelling.lod import LodIndex, open_lod
+from semantic3d.labelling import _op_kernels as kernels
+from semantic3d.labelling.delta import Delta, empty_bits
+from semantic3d.labelling.errors import OperationError, ReadOnlyError, WholeScanError
+from semantic3d.labelling.fitting import Region
+from semantic3d.labelling.journal import Journal
+from semantic3d.labelling.lod import LodIndex
+from semantic3d.labelling.progress import OperationProgress
+from semantic3d.labelling.results import (
+    MAX_RADIUS_M,
+    MAX_SEEDS,
+    MAX_TOLERANCE_M,
+    OperationResult,
+    _layer,
+)
+from semantic3d.labelling.saving import save_session
 
-__all__ = ["BLOCK_POINTS", "LabelSession", "OperationResult", "open_label_session"]
+__all__ = [
+    "BLOCK_POINTS",
+    "MAX_RADIUS_M",
+    "MAX_SEEDS",
+    "MAX_TOLERANCE_M",
+    "LabelSession",
+    "OperationResult",
+]
+
+if TYPE_CHECKING:
+    from semantic3d.labelling.fits import FitPreview
 
 logger = logging.getLogger(__name__)
 
@@ -47,33 +70,6 @@ BLOCK_POINTS = 1 << 20
 """Points read at a time when an operation streams the scan's coordinates."""
 
 N_LAYERS = N_CLASSES + 1
-_CANDIDATES_MAX = 200_000
-
-
-@dataclass(frozen=True, slots=True)
-class OperationResult:
-    """What an operation did."""
-
-    operation: str
-    entry_id: int | None
-    n_working: int
-    n_changed_labels: int
-    n_working_changed: int
-    model: dict[str, Any] | None = None
-    n_inliers: int | None = None
-    rms_m: float | None = None
-
-    def to_dict(self) -> dict[str, Any]:
-        return {
-            "operation": self.operation,
-            "entry_id": self.entry_id,
-            "n_working": self.n_working,
-            "n_changed_labels": self.n_changed_labels,
-            "n_working_changed": self.n_working_changed,
-            "model": self.model,
-            "n_inliers": self.n_inliers,
-            "rms_m": self.rms_m,
-        }
 
 
 class LabelSession:
@@ -88,6 +84,9 @@ class LabelSession:
         journal: Journal | None,
         labels_path: Path | None,
         prediction: NDArray[np.uint8] | None = None,
+        scan_folder: Path | None = None,
+        protected: tuple[Path, ...] = (),
+        started_from: Path | None = None,
         working: NDArray[np.bool_] | None = None,
         undo_stack: list[int] | None = None,
         redo_stack: list[int] | None = None,
@@ -100,6 +99,9 @@ class LabelSession:
         self.prediction = prediction
         self.journal = journal
         self.labels_path = labels_path
+        self.scan_folder = scan_folder
+        self.protected = protected
+        self.started_from = started_from
         self.working = np.ones(scan.n_points, bool) if working is None else working
         self.undo_stack = undo_stack or []
         self.redo_stack = redo_stack or []
@@ -107,6 +109,11 @@ class LabelSession:
         self.locked = np.array(locked or [False] * N_LAYERS, bool)
         self.version = 0
         self.lock = threading.RLock()
+        """Serialises operations (held for a whole operation)."""
+        self.state_lock = threading.Lock()
+        """Held only while the arrays change (node payloads read under it)."""
+        self.progress = OperationProgress()
+        self._summary: tuple[int, dict[str, Any]] | None = None
 
     # -- properties ---------------------------------------------------------------------------
 
@@ -122,14 +129,21 @@ class LabelSession:
     def origin(self) -> NDArray[np.float64]:
         return self.lod.origin
 
+    def editable_layers(self) -> NDArray[np.bool_]:
+        """Per label value: the layer is neither hidden nor locked."""
+        return ~(self.hidden | self.locked)
+
     def editable(self) -> NDArray[np.bool_]:
         """Points in a layer that is neither hidden nor locked."""
-        return ~(self.hidden | self.locked)[self.labels]
+        return self.editable_layers()[self.labels]
 
     def summary(self) -> dict[str, Any]:
-        """Counts per layer, the working set, undo/redo availability."""
-        counts = np.bincount(self.labels, minlength=N_LAYERS)
-        return {
+        """Counts per layer, the working set, undo/redo availability (cached per version)."""
+        if self._summary is not None and self._summary[0] == self.version:
+            return self._summary[1]
+        counts = np.zeros(N_LAYERS, np.int64)
+        kernels.layer_counts(self.labels, counts)
+        summary = {
             "n_points": self.n_points,
             "read_only": self.read_only,
             "version": self.version,
@@ -142,12 +156,15 @@ class LabelSession:
                 }
                 for value in range(N_LAYERS)
             ],
-            "n_working": int(self.working.sum()),
+            "n_working": int(np.count_nonzero(self.working)),
             "can_undo": bool(self.undo_stack),
             "can_redo": bool(self.redo_stack),
             "labels_path": None if self.labels_path is None else str(self.labels_path),
+            "started_from": None if self.started_from is None else str(self.started_from),
             "has_prediction": self.prediction is not None,
         }
+        self._summary = (self.version, summary)
+        return summary
 
     # -- node payloads ------------------------------------------------------------------------
 
@@ -164,84 +181,70 @@ class LabelSession:
             if self.prediction is None
             else self.prediction[indices]
         )
-        with self.lock:
+        with self.state_lock:
             return (
                 self.labels[indices].tobytes()
                 + self.working[indices].astype(np.uint8).tobytes()
                 + prediction.tobytes()
             )
 
-    # -- streaming geometry -------------------------------------------------------------------
+    # -- streaming ----------------------------------------------------------------------------
 
-    def _iter_working(
-        self, mask: NDArray[np.bool_]
-    ) -> Iterator[tuple[NDArray[np.int64], NDArray[np.float64]]]:
-        """(indices, re-centred float64 coordinates) of the points of ``mask``, in blocks."""
+    def iter_blocks(self, *, active_only: bool = True) -> Iterator[tuple[int, NDArray[np.float64]]]:
+        """``(first index, float64 xyz block)`` over the scan, with progress and cancel.
+
+        With ``active_only``, blocks holding no editable working point are skipped unread.
+        The block is a reused buffer (valid until the next one).
+        """
         path = self.scan.path / "xyz.npy"
         offset = int(self.scan.xyz.offset) if isinstance(self.scan.xyz, np.memmap) else 128
         buffer = np.empty((BLOCK_POINTS, 3), np.float64)
+        editable = self.editable_layers()
         with path.open("rb", buffering=0) as stream:
             for start in range(0, self.n_points, BLOCK_POINTS):
                 stop = min(start + BLOCK_POINTS, self.n_points)
-                selected = np.flatnonzero(mask[start:stop])
-                if selected.size == 0:
+                self.progress.update(start)
+                if active_only and not kernels.any_active(
+                    self.labels, self.working, editable, start, stop
+                ):
                     continue
                 block = buffer[: stop - start]
                 stream.seek(offset + start * 24)
-                stream.readinto(block.data.cast("B"))
-                block -= self.origin  # the buffer is ours: re-centre in place
-                if selected.size == block.shape[0]:
-                    yield selected + start, block
-                else:
-                    yield selected + start, block[selected]
+                view = memoryview(block.reshape(-1).view(np.uint8))  # type: ignore[arg-type]
+                got = 0
+                while got < view.nbytes:
+                    read = stream.readinto(view[got:])
+                    if not read:
+                        raise OSError(f"{path}: unexpected end of file at point {start}")
+                    got += read
+                yield start, block
+        self.progress.update(self.n_points)
 
-    def _sample_near(
-        self, mask: NDArray[np.bool_], centre: NDArray[np.float64], radius: float
-    ) -> NDArray[np.float64]:
-        """A uniform sample (at most ``_CANDIDATES_MAX``) of the points of ``mask`` near ``centre``.
-
-        Each near point draws a random key and the smallest keys are kept, block by block:
-        memory stays at one block plus the sample however many points are near.
-        """
-        rng = np.random.default_rng(0)
-        kept = np.empty((0, 3))
-        keys = np.empty(0)
-        for _, xyz in self._iter_working(mask):
-            offset = xyz - centre
-            near = xyz[np.einsum("ij,ij->i", offset, offset) <= radius * radius]
-            kept = np.concatenate([kept, near])
-            keys = np.concatenate([keys, rng.random(len(near))])
-            if len(kept) > _CANDIDATES_MAX:
-                best = np.argpartition(keys, _CANDIDATES_MAX)[:_CANDIDATES_MAX]
-                kept, keys = kept[best], keys[best]
-        return kept
+    def _run(self, name: str) -> _Running:
+        self._require_writable()
+        return _Running(self, name)
 
     def _require_writable(self) -> Journal:
         if self.journal is None:
             raise ReadOnlyError("this scan is open read-only (semantic3d view): nothing changes")
         return self.journal
 
-    def _commit(
-        self,
-        operation: dict[str, Any],
-        labels: NDArray[np.uint8],
-        working: NDArray[np.bool_],
-        **extra: Any,
-    ) -> OperationResult:
-        """Journal the change from the current state to (labels, working), then adopt it."""
+    def _commit(self, operation: dict[str, Any], delta: Delta, **extra: Any) -> OperationResult:
+        """Journal ``delta`` (durable before it shows), then apply it."""
         journal = self._require_writable()
-        delta = Delta.between(self.labels, labels, self.working, working)
-        entry_id = journal.append_apply(operation, delta)  # durable before it shows
-        delta.apply(self.labels, self.working)
-        self.undo_stack.append(entry_id)
-        self.redo_stack.clear()
-        self.version += 1
+        self.progress.committing()
+        entry_id = journal.append_apply(operation, delta)
+        with self.state_lock:
+            delta.apply(self.labels, self.working)
+            self.undo_stack.append(entry_id)
+            self.redo_stack.clear()
+            self.version += 1
         return OperationResult(
             operation["name"],
             entry_id,
-            int(self.working.sum()),
-            int(delta.changed.size),
-            int(delta.working_flip.size),
+            int(np.count_nonzero(self.working)),
+            delta.n_changed,
+            delta.n_flipped,
             **extra,
         )
 
@@ -250,25 +253,51 @@ class LabelSession:
     def split(
         self, view_projection: ArrayLike, polygon: ArrayLike, *, keep: str = "inside"
     ) -> OperationResult:
-        """Keep the working points inside (``keep="inside"``) or outside a screen polygon."""
-        if keep not in ("inside", "outside"):
-            raise OperationError(f"keep: expected 'inside' or 'outside', found {keep!r}")
-        matrix = np.asarray(view_projection, np.float64)
-        vertices = np.asarray(polygon, np.float64)
-        with self.lock:
-            self._require_writable()
-            active = self.working & self.editable()
-            new_working = self.working.copy()
-            for indices, xyz in self._iter_working(active):
-                inside = geometry.select_in_polygon(xyz, matrix, vertices)
-                new_working[indices] = inside if keep == "inside" else ~inside
-            operation = {
-                "name": "split",
-                "keep": keep,
-                "view_projection": matrix.reshape(-1).tolist(),
-                "polygon": vertices.tolist(),
-            }
-            return self._commit(operation, self.labels, new_working)
+        """Keep the working points inside (``keep="inside"``) or outside a screen polygon.
+
+        See :func:`semantic3d.labelling.selections.split`.
+        """
+        from semantic3d.labelling import selections
+
+        return selections.split(self, view_projection, polygon, keep=keep)
+
+    def split_mask(
+        self,
+        view_projection: ArrayLike,
+        mask: NDArray[np.uint8],
+        *,
+        width: int,
+        height: int,
+        keep: str = "inside",
+    ) -> OperationResult:
+        """Keep the working points inside (or outside) a screen mask (a lasso, a brush stroke).
+
+        See :func:`semantic3d.labelling.selections.split_mask`.
+        """
+        from semantic3d.labelling import selections
+
+        return selections.split_mask(
+            self, view_projection, mask, width=width, height=height, keep=keep
+        )
+
+    def fit_preview(
+        self,
+        kind: str,
+        seeds: ArrayLike,
+        *,
+        tolerance_m: float,
+        radius_m: float | None = None,
+        region: Region | None = None,
+    ) -> FitPreview:
+        """Fit a model through ``seeds`` and count its inliers in ``region``; change nothing.
+
+        See :func:`semantic3d.labelling.fits.fit_preview`.
+        """
+        from semantic3d.labelling import fits
+
+        return fits.fit_preview(
+            self, kind, seeds, tolerance_m=tolerance_m, radius_m=radius_m, region=region
+        )
 
     def fit(
         self,
@@ -277,90 +306,74 @@ class LabelSession:
         *,
         tolerance_m: float,
         radius_m: float | None = None,
+        region: Region | None = None,
+        model: dict[str, Any] | None = None,
     ) -> OperationResult:
-        """Fit a model near ``seeds`` (re-centred metres); the working set keeps its inliers.
+        """Fit a model through ``seeds``; the working set keeps its inliers in ``region``.
 
-        Candidates are the working points within ``radius_m`` of the seeds' centre (by
-        default 1.5 × the seeds' spread, at least 1 m); the fitted model then selects its
-        inliers among all working points of the scan.
+        See :func:`semantic3d.labelling.fits.fit`.
         """
-        try:
-            model_kind = geometry.ModelKind(kind)
-        except ValueError:
-            known = ", ".join(k.value for k in geometry.ModelKind)
-            raise OperationError(f"kind: expected one of {known}, found {kind!r}") from None
-        seed_xyz = np.asarray(seeds, np.float64).reshape(-1, 3)
-        if len(seed_xyz) == 0:
-            raise OperationError("seeds: expected at least one picked point, found none")
-        if not tolerance_m > 0:
-            raise OperationError(f"tolerance_m: expected a positive distance, found {tolerance_m}")
-        centre = seed_xyz.mean(axis=0)
-        spread = float(np.linalg.norm(seed_xyz - centre, axis=1).max())
-        radius = float(radius_m) if radius_m is not None else max(1.5 * spread, 1.0)
-        with self.lock:
-            self._require_writable()
-            active = self.working & self.editable()
-            candidates = self._sample_near(active, centre, radius)
-            try:
-                fitted = geometry.fit_model(
-                    model_kind, candidates, tolerance_m=tolerance_m, seeds=seed_xyz
-                )
-            except ValueError as exc:
-                raise OperationError(f"fit {model_kind.value}: {exc}") from None
-            new_working = self.working.copy()
-            for indices, xyz in self._iter_working(active):
-                new_working[indices] = fitted.model.distance(xyz) <= tolerance_m
-            operation = {
-                "name": "fit",
-                "kind": model_kind.value,
-                "seeds": seed_xyz.tolist(),
-                "tolerance_m": tolerance_m,
-                "radius_m": radius,
-                "model": fitted.model.to_dict(),
-            }
-            return self._commit(
-                operation,
-                self.labels,
-                new_working,
-                model=fitted.model.to_dict(),
-                n_inliers=int(new_working.sum()),
-                rms_m=fitted.rms_m,
-            )
+        from semantic3d.labelling import fits
 
-    def assign(self, value: int) -> OperationResult:
-        """Move the editable working points to the layer of label value ``value``."""
+        return fits.fit(
+            self,
+            kind,
+            seeds,
+            tolerance_m=tolerance_m,
+            radius_m=radius_m,
+            region=region,
+            model=model,
+        )
+
+    def assign(self, value: int, *, confirm_whole_scan: bool = False) -> OperationResult:
+        """Move the editable working points to the layer of label value ``value``.
+
+        When the working set holds every editable point (the whole scan, as when a
+        session starts), :class:`WholeScanError` is raised unless ``confirm_whole_scan``.
+        """
         value = _layer(value)
-        with self.lock:
-            self._require_writable()
+        with self.lock, self._run("assign"):
             if self.locked[value]:
                 raise OperationError(f"layer {value} is locked: unlock it to add points")
-            labels = self.labels.copy()
-            labels[self.working & self.editable()] = value
-            return self._commit({"name": "assign", "value": value}, labels, self.working)
+            editable = self.editable_layers()
+            n_editable, n_chosen = kernels.count_active(self.labels, self.working, editable)
+            if not confirm_whole_scan and n_chosen and n_chosen == n_editable:
+                raise WholeScanError(
+                    f"the working set is the whole scan ({n_chosen:,} editable points): "
+                    f"confirm to assign every one of them to layer {value}"
+                )
+            changed = empty_bits(self.n_points)
+            n = kernels.assign_marks(self.labels, self.working, editable, value, changed)
+            old = np.empty(n, np.uint8)
+            kernels.gather_marked(self.labels, changed, old)
+            delta = Delta(self.n_points, changed, old, None, value, empty_bits(self.n_points))
+            return self._commit({"name": "assign", "value": value}, delta)
 
     def reset(self, *, scope: str = "all") -> OperationResult:
         """The working set becomes every editable point (``scope="unlabelled"``: label 0 only)."""
         if scope not in ("all", "unlabelled"):
             raise OperationError(f"scope: expected 'all' or 'unlabelled', found {scope!r}")
-        with self.lock:
-            self._require_writable()
-            working = self.editable()
-            if scope == "unlabelled":
-                working &= self.labels == 0
-            return self._commit({"name": "reset", "scope": scope}, self.labels, working)
+        with self.lock, self._run("reset"):
+            flip = empty_bits(self.n_points)
+            kernels.reset_flips(
+                self.labels, self.working, self.editable_layers(), scope == "unlabelled", flip
+            )
+            delta = Delta.working_only(self.n_points, flip)
+            return self._commit({"name": "reset", "scope": scope}, delta)
 
     def move_layer(self, source: int, target: int) -> OperationResult:
         """Move every point of layer ``source`` to layer ``target``."""
         source, target = _layer(source), _layer(target)
-        with self.lock:
-            self._require_writable()
+        with self.lock, self._run("move layer"):
             for value in (source, target):
                 if self.locked[value]:
                     raise OperationError(f"layer {value} is locked: unlock it to move points")
-            labels = self.labels.copy()
-            labels[self.labels == source] = target
+            changed = empty_bits(self.n_points)
+            n = 0 if source == target else kernels.layer_marks(self.labels, source, changed)
+            old = np.full(n, source, np.uint8)
+            delta = Delta(self.n_points, changed, old, None, target, empty_bits(self.n_points))
             operation = {"name": "move_layer", "source": source, "target": target}
-            return self._commit(operation, labels, self.working)
+            return self._commit(operation, delta)
 
     def set_layer(
         self, value: int, *, hidden: bool | None = None, locked: bool | None = None
@@ -376,175 +389,79 @@ class LabelSession:
                 self.journal.set_meta(hidden=self.hidden.tolist(), locked=self.locked.tolist())
             self.version += 1
 
+    def _step(self, kind: str) -> OperationResult:
+        with self.lock, self._run(kind):
+            journal = self._require_writable()
+            stack = self.undo_stack if kind == "undo" else self.redo_stack
+            if not stack:
+                raise OperationError(f"nothing to {kind}")
+            target = stack[-1]
+            delta = journal.delta(target)
+            self.progress.committing()
+            entry = journal.append_step(kind, target)
+            with self.state_lock:
+                if kind == "undo":
+                    delta.revert(self.labels, self.working)
+                    self.redo_stack.append(self.undo_stack.pop())
+                else:
+                    delta.apply(self.labels, self.working)
+                    self.undo_stack.append(self.redo_stack.pop())
+                self.version += 1
+            return OperationResult(
+                kind, entry, int(np.count_nonzero(self.working)), delta.n_changed, delta.n_flipped
+            )
+
     def undo(self) -> OperationResult:
         """Revert the last operation still applied."""
-        with self.lock:
-            journal = self._require_writable()
-            if not self.undo_stack:
-                raise OperationError("nothing to undo")
-            target = self.undo_stack[-1]
-            delta = journal.delta(target)
-            entry = journal.append_step("undo", target)
-            delta.revert(self.labels, self.working)
-            self.redo_stack.append(self.undo_stack.pop())
-            self.version += 1
-            return OperationResult(
-                "undo", entry, int(self.working.sum()), delta.changed.size, delta.working_flip.size
-            )
+        return self._step("undo")
 
     def redo(self) -> OperationResult:
         """Reapply the last undone operation."""
-        with self.lock:
-            journal = self._require_writable()
-            if not self.redo_stack:
-                raise OperationError("nothing to redo")
-            target = self.redo_stack[-1]
-            delta = journal.delta(target)
-            entry = journal.append_step("redo", target)
-            delta.apply(self.labels, self.working)
-            self.undo_stack.append(self.redo_stack.pop())
-            self.version += 1
-            return OperationResult(
-                "redo", entry, int(self.working.sum()), delta.changed.size, delta.working_flip.size
-            )
+        return self._step("redo")
+
+    def cancel(self) -> bool:
+        """Ask the running operation to stop (``False`` when none can be stopped)."""
+        return self.progress.cancel()
 
     def save(self, path: str | Path | None = None, *, overwrite: bool = False) -> Path:
         """Write the labels as a ``.labels`` file, atomically; return its path.
 
-        The file being edited (``labels_path``) is replaced; any other existing file only
-        with ``overwrite``.
+        ``path`` ``None`` writes the session's labels file; another name must pass
+        :func:`~semantic3d.labelling.saving.check_save_target`. The journal records the
+        save before the rename (see :func:`~semantic3d.labelling.saving.save_session`).
         """
-        from semantic3d.io.labels import write_labels
-
         with self.lock:
             journal = self._require_writable()
-            target = Path(path) if path is not None else self.labels_path
-            if target is None:
+            if self.labels_path is None:
                 raise OperationError("save: expected a path to write the labels to, found none")
-            editing = self.labels_path is not None and _same_file(target, self.labels_path)
-            if target.exists() and not editing and not overwrite:
-                raise OutputExistsError(
-                    f"{target}: already exists and is not the file being edited; "
-                    "pass overwrite to replace it"
-                )
-            labels = self.labels.copy()
-            write_labels(
-                target, (labels[a : a + BLOCK_POINTS] for a in range(0, len(labels), BLOCK_POINTS))
+            return save_session(
+                journal,
+                self.labels,
+                self.working,
+                labels_path=self.labels_path,
+                requested=path,
+                scan_folder=self.scan_folder,
+                protected=self.protected,
+                overwrite=overwrite,
+                block_points=BLOCK_POINTS,
             )
-            identity = _identity(target) if editing else None
-            meta = {"saved_identity": identity} if editing else None
-            journal.append_checkpoint(labels, self.working, note=f"saved {target.name}", meta=meta)
-            return target
 
     def close(self) -> None:
-        """Close the journal (every committed operation is kept)."""
+        """Close the journal (every committed operation is kept) and the level of detail."""
         if self.journal is not None:
             self.journal.close()
+        self.lod.close()
 
 
-def _layer(value: int) -> int:
-    if isinstance(value, bool) or int(value) != value or not 0 <= int(value) <= N_CLASSES:
-        raise OperationError(f"layer: expected a label value in 0..{N_CLASSES}, found {value!r}")
-    return int(value)
+class _Running:
+    """``with``: the session's progress shows the operation ``name`` until it ends."""
 
+    def __init__(self, session: LabelSession, name: str) -> None:
+        self.session = session
+        self.name = name
 
-def _same_file(a: Path, b: Path) -> bool:
-    return a.resolve() == b.resolve()
+    def __enter__(self) -> None:
+        self.session.progress.start(self.name, self.session.n_points)
 
-
-def _identity(path: Path) -> list[int] | None:
-    if not path.is_file():
-        return None
-    stat = path.stat()
-    return [int(stat.st_size), int(stat.st_mtime_ns)]
-
-
-def scan_id(scan: CachedScan) -> str:
-    """A short identity of a cached scan (its meta.json), recorded in journals."""
-    return hashlib.sha256((scan.path / "meta.json").read_bytes()).hexdigest()[:16]
-
-
-def journal_path_for(labels_path: Path) -> Path:
-    """Where the journal of a ``.labels`` file lives: beside it, ``NAME.labels.journal``."""
-    return labels_path.with_name(labels_path.name + ".journal")
-
-
-def open_label_session(
-    scan_path: str | Path,
-    *,
-    labels_path: str | Path | None = None,
-    prediction_path: str | Path | None = None,
-    read_only: bool = False,
-    progress: Callable[[str, int, int], None] | None = None,
-    node_capacity: int | None = None,
-) -> LabelSession:
-    """Open ``scan_path`` (any point format or a cache folder) for labelling or viewing.
-
-    The cache (for a point file: ``NAME.cache`` beside it) and its level-of-detail index
-    are built on first open and reused. ``labels_path`` is read when it exists (its length
-    and values are checked first: :class:`LabelFileError`) and is where :meth:`save`
-    writes. Labelling resumes from the journal beside ``labels_path`` when there is one
-    and the labels file was not changed since the session last saved it; a journal that
-    no longer matches is moved aside (``.stale-<id>``) and a new one started.
-    """
-    scan = build_cache_if_needed(scan_path, progress=progress)
-    kwargs = {} if node_capacity is None else {"capacity": node_capacity}
-    lod = open_lod(scan.path, progress=progress, **kwargs)
-    labels_file = None if labels_path is None else Path(labels_path)
-    labels = (
-        read_label_file(labels_file, n_points=scan.n_points)
-        if labels_file is not None and labels_file.exists()
-        else np.zeros(scan.n_points, np.uint8)
-    )
-    prediction = (
-        None
-        if prediction_path is None
-        else read_label_file(Path(prediction_path), n_points=scan.n_points)
-    )
-    if read_only or labels_file is None:
-        if not read_only:
-            raise OperationError("labelling needs a labels file to save to (--labels)")
-        return LabelSession(
-            scan, lod, labels, journal=None, labels_path=labels_file, prediction=prediction
-        )
-    path = journal_path_for(labels_file)
-    identity = _identity(labels_file)
-    journal = (
-        Journal(path, scan_id=scan_id(scan), n_points=scan.n_points) if path.exists() else None
-    )
-    if journal is not None:
-        meta = journal.meta()
-        state = journal.replay()
-        if state is None or meta.get("saved_identity", meta.get("base_identity")) != identity:
-            journal.close()
-            stale = path.with_name(f"{path.name}.stale-{uuid.uuid4().hex[:8]}")
-            path.rename(stale)
-            for suffix in ("-wal", "-shm"):
-                side = path.with_name(path.name + suffix)
-                if side.exists():
-                    side.rename(stale.with_name(stale.name + suffix))
-            logger.warning(
-                "%s: changed since the journal was written; journal moved to %s", labels_file, stale
-            )
-            journal = None
-        else:
-            logger.info("%s: resuming %d journal entries", path, state.n_entries)
-            return LabelSession(
-                scan,
-                lod,
-                state.labels,
-                journal=journal,
-                labels_path=labels_file,
-                prediction=prediction,
-                working=state.working,
-                undo_stack=state.undo_stack,
-                redo_stack=state.redo_stack,
-                hidden=meta.get("hidden"),
-                locked=meta.get("locked"),
-            )
-    journal = Journal(path, scan_id=scan_id(scan), n_points=scan.n_points)
-    working = np.ones(scan.n_points, bool)
-    journal.append_checkpoint(labels, working, note="opened", meta={"base_identity": identity})
-    return LabelSession(
-        scan, lod, labels, journal=journal, labels_path=labels_file, prediction=prediction
-    )
+    def __exit__(self, *exc: object) -> None:
+        self.session.progress.finish()

@@ -1,77 +1,134 @@
-// The labelling page: panels, the 2D polygon and 3D fitting workflows, layers, undo/redo, save.
-import { Viewer } from '/static/viewer.js';
+// The labelling page: panels, selection tools, model fits, layers, undo/redo, save, measure.
+import { api } from '/static/api.js';
+import { SelectionTool, describeMeasures } from '/static/tools.js';
+import { RAMP, Viewer } from '/static/viewer.js';
 
 const $ = (id) => document.getElementById(id);
+const EDIT_KEYS = new Set(['d', 'l', 'b', 'p', 'backspace', 'enter']);
 
-async function api(path, body) {
-  const options = body === undefined ? {} : {
-    method: 'POST', headers: { 'Content-Type': 'application/json' }, body: JSON.stringify(body),
-  };
-  const response = await fetch(path, options);
-  const data = await response.json().catch(() => ({}));
-  if (!response.ok) {
-    const detail = typeof data.detail === 'string' ? data.detail : JSON.stringify(data.detail);
-    throw new Error(detail || response.statusText);
-  }
-  return data;
-}
+// Every key the page knows (the help panel lists this table).
+const KEYS = [
+  ['Ctrl+Z', 'undo'],
+  ['Ctrl+Y, Ctrl+Shift+Z', 'redo'],
+  ['Ctrl+S', 'save'],
+  ['D', 'draw a polygon (click the vertices)'],
+  ['L', 'lasso (drag around the points)'],
+  ['B', 'brush (paint over the points)'],
+  ['Enter, double-click', 'close the polygon'],
+  ['Backspace', 'remove the polygon\'s last vertex'],
+  ['Escape', 'cancel the selection, the picks or the measure; close this help'],
+  ['P', 'pick points for a model fit'],
+  ['M', 'measure: coordinates, distances, heights'],
+  ['O', 'orbit view'],
+  ['T', 'top view'],
+  ['F', 'front view'],
+  ['S', 'side view'],
+  ['V', '2D view along the current direction'],
+  ['W', 'frame the working set'],
+  ['+, -', 'bigger, smaller points'],
+  ['H, ?', 'this help'],
+];
+
+function storageKey(scan) { return `semantic3d:view:${scan.name}:${scan.hierarchy.n_points}`; }
 
 class LabelApp {
   constructor(scan) {
     this.scan = scan;
     this.summary = scan.summary;
     this.picks = [];
-    this.polygon = [];
+    this.measures = [];
     this.mode = 'orbit';
-    this.lastFit = null;
+    this.preview = null;
     this.busy = false;
     this.queue = Promise.resolve();
     this.viewer = new Viewer($('stage'), scan);
-    this.viewer.onChange(() => this.showStatus());
-    document.body.classList.toggle('read-only', scan.summary.read_only);
+    this.tool = new SelectionTool(this);
+    this.viewer.onChange(() => { this.showStatus(); this.showScale(); });
+    this.readOnly = scan.summary.read_only;
+    document.body.classList.toggle('read-only', this.readOnly);
     $('scan-name').textContent = scan.name;
-    $('mode-line').textContent = scan.summary.read_only
-      ? 'read-only viewer' : `labelling → ${scan.summary.labels_path}`;
-    if (!scan.summary.has_prediction) {
+    const s = scan.summary;
+    $('mode-line').textContent = this.readOnly ? 'read-only viewer'
+      : `labelling → ${s.labels_path}` + (s.started_from ? ` (started from ${s.started_from})` : '');
+    if (!s.has_prediction) {
       for (const v of ['prediction', 'errors']) $('colour-mode').querySelector(`[value=${v}]`).disabled = true;
     }
     for (const select of [$('assign-class'), $('move-source'), $('move-target')]) {
       for (const c of scan.classes) select.add(new Option(`${c.value} ${c.name}`, c.value));
     }
     $('assign-class').value = '1';
+    $('help-keys').innerHTML = KEYS.map(([k, what]) => `<tr><td>${k}</td><td>${what}</td></tr>`).join('');
     this.bind();
-    this.showSummary(scan.summary);
+    this.restoreSettings();
+    this.showSummary(s);
+    this.showLegend();
     this.viewer.requestRender(true);
+  }
+
+  // --- settings remembered across reloads ------------------------------------------------------
+
+  restoreSettings() {
+    let saved = null;
+    try { saved = JSON.parse(localStorage.getItem(storageKey(this.scan)) || 'null'); } catch { saved = null; }
+    const v = this.viewer;
+    if (saved) {
+      if (saved.colourMode && !$('colour-mode').querySelector(`[value=${saved.colourMode}]`).disabled) {
+        $('colour-mode').value = saved.colourMode; v.colourMode = saved.colourMode;
+      }
+      if (saved.budget) { $('point-budget').value = String(saved.budget); v.setBudget(Number(saved.budget)); }
+      if (saved.pointSize) { $('point-size').value = String(saved.pointSize); v.setPointSize(Number(saved.pointSize)); }
+      this.restoredView = v.restoreView(saved.view);
+    } else {
+      v.setBudget(Number($('point-budget').value));
+    }
+    // The start view frames the dense part of the scan (far returns inflate its bounds).
+    v.onDenseFrame = () => { if (!this.restoredView) v.frameBox(v.frame); this.showLegend(); };
+    this.markView();
+    window.addEventListener('beforeunload', () => this.saveSettings());
+    this.viewer.onChange(() => { clearTimeout(this.saveTimer); this.saveTimer = setTimeout(() => this.saveSettings(), 400); });
+  }
+
+  saveSettings() {
+    const v = this.viewer;
+    const settings = { view: v.viewState(), colourMode: v.colourMode, budget: v.pointBudget, pointSize: v.pointSize };
+    try { localStorage.setItem(storageKey(this.scan), JSON.stringify(settings)); } catch { /* storage full or off */ }
   }
 
   bind() {
     const v = this.viewer;
-    $('colour-mode').onchange = (e) => { v.colourMode = e.target.value; v.recolour(); };
+    $('colour-mode').onchange = (e) => { v.colourMode = e.target.value; v.recolour(); this.showLegend(); this.saveSettings(); };
     $('point-size').oninput = (e) => v.setPointSize(Number(e.target.value));
-    $('point-budget').onchange = (e) => v.setBudget(Number(e.target.value));
+    $('point-budget').onchange = (e) => { v.setBudget(Number(e.target.value)); this.saveSettings(); };
     $('dim-outside').onchange = (e) => { v.dimOutside = e.target.checked; v.recolour(); };
-    for (const view of ['free', 'top', 'front', 'side']) {
-      $(`view-${view}`).onclick = () => { this.cancelPolygon(); v.setView(view); this.markView(); };
-    }
-    this.markView();
+    for (const view of ['free', 'top', 'front', 'side', 'free2d']) $(`view-${view}`).onclick = () => this.setView(view);
     $('frame-working').onclick = () => v.frameWorking();
-    // 2D workflow
-    $('draw-polygon').onclick = () => this.startPolygon();
-    $('finish-polygon').onclick = () => this.finishPolygon();
-    $('cancel-polygon').onclick = () => this.cancelPolygon();
-    $('keep-inside').onclick = () => this.split('inside');
-    $('keep-outside').onclick = () => this.split('outside');
-    const overlay = $('overlay');
-    overlay.addEventListener('click', (e) => this.addVertex(e));
-    overlay.addEventListener('dblclick', (e) => { e.preventDefault(); this.finishPolygon(); });
+    $('frame-dense').onclick = () => v.frameBox(v.frame);
+    $('range-low').onchange = () => this.setRange();
+    $('range-high').onchange = () => this.setRange();
+    $('range-auto').onclick = () => { v.setRange(this.rangeKind(), null); this.showLegend(); };
+    $('help-toggle').onclick = () => this.toggleHelp();
+    // selection in a fixed view
+    for (const kind of ['polygon', 'lasso', 'brush']) $(`draw-${kind}`).onclick = () => this.startSelection(kind);
+    $('finish-polygon').onclick = () => this.tool.close();
+    $('cancel-polygon').onclick = () => this.tool.cancel();
+    $('keep-inside').onclick = () => this.applySelection('inside');
+    $('keep-outside').onclick = () => this.applySelection('outside');
     // 3D workflow
     $('pick-points').onclick = () => this.setMode(this.mode === 'pick' ? 'orbit' : 'pick');
     $('clear-picks').onclick = () => this.clearPicks();
-    $('tolerance').oninput = (e) => { $('tolerance-value').textContent = `${Number(e.target.value).toFixed(2)} m`; };
-    $('tolerance').onchange = () => { if (this.lastFit !== null) this.fit(true); };
-    $('fit-model').onclick = () => this.fit(false);
-    v.renderer.domElement.addEventListener('click', (e) => this.pickAt(e));
-    // layers and history
+    $('tolerance').oninput = (e) => { $('tolerance-value').value = Number(e.target.value).toFixed(2); };
+    $('tolerance').onchange = () => this.refreshPreview();
+    $('tolerance-value').onchange = (e) => { $('tolerance').value = e.target.value; this.refreshPreview(); };
+    $('region-kind').onchange = () => this.refreshPreview();
+    $('region-size').onchange = () => { this.regionSizeSet = true; this.refreshPreview(); };
+    $('model-kind').onchange = () => this.refreshPreview();
+    $('fit-preview').onclick = () => this.fitPreview();
+    $('fit-model').onclick = () => this.fit();
+    // measure
+    $('measure').onclick = () => this.setMode(this.mode === 'measure' ? 'orbit' : 'measure');
+    $('clear-measure').onclick = () => this.clearMeasures();
+    v.renderer.domElement.addEventListener('click', (e) => this.clickScene(e));
+    // layers, counts and history
     $('assign').onclick = () => this.run('/api/assign', { value: Number($('assign-class').value) }, true);
     $('reset-all').onclick = () => this.run('/api/reset', { scope: 'all' });
     $('reset-unlabelled').onclick = () => this.run('/api/reset', { scope: 'unlabelled' });
@@ -81,143 +138,276 @@ class LabelApp {
     $('undo').onclick = () => this.run('/api/undo', {});
     $('redo').onclick = () => this.run('/api/redo', {});
     $('save').onclick = () => this.save();
-    document.addEventListener('keydown', (e) => {
-      if (this.summary.read_only || e.target.tagName === 'INPUT' && e.target.type === 'text') return;
-      const key = e.key.toLowerCase();
-      if ((e.ctrlKey || e.metaKey) && key === 'z') { e.preventDefault(); this.run(e.shiftKey ? '/api/redo' : '/api/undo', {}); }
-      else if ((e.ctrlKey || e.metaKey) && key === 'y') { e.preventDefault(); this.run('/api/redo', {}); }
-      else if ((e.ctrlKey || e.metaKey) && key === 's') { e.preventDefault(); this.save(); }
-      else if (key === 'enter' && this.mode === 'polygon') this.finishPolygon();
-      else if (key === 'escape') this.cancelPolygon();
-    });
+    $('stats-working').onclick = () => this.showStats('working');
+    $('stats-view').onclick = () => this.showStats('view');
+    $('cancel-operation').onclick = () => api('/api/cancel', {}).catch(() => null);
+    document.addEventListener('keydown', (e) => this.key(e));
+    // A choice made in a list hands the keyboard back to the page (T, F, S... work at once).
+    for (const select of document.querySelectorAll('select')) select.addEventListener('change', () => select.blur());
+  }
+
+  key(e) {
+    const tag = e.target.tagName;
+    if ((tag === 'INPUT' && e.target.type !== 'range' && e.target.type !== 'checkbox') || tag === 'SELECT') return;
+    const key = e.key.toLowerCase();
+    const ctrl = e.ctrlKey || e.metaKey;
+    if (this.readOnly && (ctrl || EDIT_KEYS.has(key))) return;
+    if (ctrl && key === 'z') { e.preventDefault(); this.run(e.shiftKey ? '/api/redo' : '/api/undo', {}); }
+    else if (ctrl && key === 'y') { e.preventDefault(); this.run('/api/redo', {}); }
+    else if (ctrl && key === 's') { e.preventDefault(); this.save(); }
+    else if (ctrl || e.altKey) return;
+    else if (key === 'enter' && this.tool.kind === 'polygon') this.tool.close();
+    else if (key === 'backspace') { if (this.tool.removeVertex()) e.preventDefault(); }
+    else if (key === 'escape') { this.tool.cancel(); this.setMode('orbit'); $('help').hidden = true; }
+    else if (key === 'd') this.startSelection('polygon');
+    else if (key === 'l') this.startSelection('lasso');
+    else if (key === 'b') this.startSelection('brush');
+    else if (key === 'p') this.setMode(this.mode === 'pick' ? 'orbit' : 'pick');
+    else if (key === 'm') this.setMode(this.mode === 'measure' ? 'orbit' : 'measure');
+    else if (key === 'o') this.setView('free');
+    else if (key === 't') this.setView('top');
+    else if (key === 'f') this.setView('front');
+    else if (key === 's') this.setView('side');
+    else if (key === 'v') this.setView('free2d');
+    else if (key === 'w') this.viewer.frameWorking();
+    else if (key === '+' || key === '=') this.bumpPointSize(0.5);
+    else if (key === '-') this.bumpPointSize(-0.5);
+    else if (key === 'h' || key === '?') this.toggleHelp();
+  }
+
+  toggleHelp() { $('help').hidden = !$('help').hidden; }
+
+  bumpPointSize(step) {
+    const size = Math.min(8, Math.max(1, this.viewer.pointSize + step));
+    $('point-size').value = String(size);
+    this.viewer.setPointSize(size);
+  }
+
+  setView(view) {
+    this.tool.cancel();
+    this.viewer.setView(view);
+    this.markView();
+    this.saveSettings();
   }
 
   markView() {
-    for (const view of ['free', 'top', 'front', 'side']) $(`view-${view}`).classList.toggle('active', this.viewer.view === view);
+    for (const view of ['free', 'top', 'front', 'side', 'free2d']) $(`view-${view}`).classList.toggle('active', this.viewer.view === view);
+    this.showScale();
   }
 
   setMode(mode) {
     this.mode = mode;
     $('pick-points').classList.toggle('active', mode === 'pick');
-    $('draw-polygon').classList.toggle('active', mode === 'polygon');
-    $('overlay').classList.toggle('drawing', mode === 'polygon');
+    $('measure').classList.toggle('active', mode === 'measure');
   }
 
-  // --- 2D: polygon -------------------------------------------------------------------------
+  // --- legend, colour ranges, scale bar and axes ------------------------------------------------
 
-  startPolygon() {
-    if (this.viewer.view === 'free') this.viewer.controls.enabled = false; // the view is fixed while drawing
-    this.polygon = [];
-    this.polygonClosed = false;
-    this.setMode('polygon');
-    this.drawPolygon();
-    $('finish-polygon').disabled = false;
-    $('cancel-polygon').disabled = false;
+  rangeKind() { return this.viewer.colourMode === 'height' ? 'height' : 'intensity'; }
+
+  setRange() {
+    const low = Number($('range-low').value), high = Number($('range-high').value);
+    if (!(high > low)) { this.showError('colour range: expected from < to'); return; }
+    const kind = this.rangeKind();
+    const shift = kind === 'height' ? this.scan.hierarchy.origin[2] : 0;
+    this.viewer.setRange(kind, [low - shift, high - shift]);
+    this.showLegend();
   }
 
-  addVertex(e) {
-    if (this.mode !== 'polygon' || this.polygonClosed) return;
-    const rect = $('overlay').getBoundingClientRect();
-    this.polygon.push([e.clientX - rect.left, e.clientY - rect.top]);
-    this.drawPolygon();
+  showLegend() {
+    const v = this.viewer, mode = v.colourMode, legend = $('legend');
+    const swatch = (colour, name) => `<span class="item"><span class="swatch" style="background:${colour}"></span> ${name}</span>`;
+    const rgb = (c) => `rgb(${c.map(Math.round).join(',')})`;
+    $('range-controls').hidden = !(mode === 'height' || mode === 'intensity');
+    if (mode === 'class' || mode === 'prediction') {
+      legend.innerHTML = this.scan.classes.map((c) => swatch(c.colour, `${c.value} ${c.name}`)).join('')
+        + (mode === 'prediction' ? swatch('rgb(90,90,90)', 'no prediction') : '');
+    } else if (mode === 'errors') {
+      legend.innerHTML = swatch('rgb(40,180,60)', 'right') + swatch('rgb(230,30,30)', 'wrong')
+        + swatch('rgb(90,90,90)', 'unlabelled truth or no prediction');
+    } else if (mode === 'rgb') {
+      legend.innerHTML = '<span class="item">colours as scanned</span>';
+    } else {
+      const kind = this.rangeKind();
+      const shift = kind === 'height' ? this.scan.hierarchy.origin[2] : 0;
+      const [low, high] = v.ranges[kind].map((x) => x + shift);
+      const stops = kind === 'height' ? RAMP.map(rgb).join(',') : 'black,white';
+      const unit = kind === 'height' ? ' m' : ' (0–255 of the scan\'s range)';
+      legend.innerHTML = `<div class="ramp" style="background:linear-gradient(to right,${stops})"></div>`
+        + `<div class="ends"><span>${low.toFixed(2)}</span><span>${kind}${unit}</span><span>${high.toFixed(2)}</span></div>`;
+      $('range-low').value = low.toFixed(2);
+      $('range-high').value = high.toFixed(2);
+    }
   }
 
-  finishPolygon() {
-    if (this.mode !== 'polygon') return;
-    // a double click adds the same vertex twice
-    this.polygon = this.polygon.filter((p, i, all) => i === 0 || Math.hypot(p[0] - all[i - 1][0], p[1] - all[i - 1][1]) > 2);
-    if (this.polygon.length < 3) { this.showError('a polygon needs at least 3 vertices'); return; }
-    this.polygonClosed = true;
-    this.drawPolygon();
-    $('keep-inside').disabled = false;
-    $('keep-outside').disabled = false;
-    $('finish-polygon').disabled = true;
+  showScale() {
+    const v = this.viewer;
+    const shown = v.is2d;
+    $('scale-bar').hidden = !shown;
+    $('axes').hidden = !shown;
+    if (!shown) return;
+    const mpp = v.metresPerPixel();
+    const target = 120 * mpp, power = 10 ** Math.floor(Math.log10(target));
+    const length = [1, 2, 5, 10].map((m) => m * power).filter((l) => l <= target).pop() || power;
+    $('scale-line').style.width = `${length / mpp}px`;
+    $('scale-text').textContent = length >= 1 ? `${length} m` : `${Math.round(length * 1000)} mm`;
+    const name = (vec) => {
+      const axis = vec.map(Math.abs).indexOf(Math.max(...vec.map(Math.abs)));
+      if (Math.abs(vec[axis]) > 0.999) return `${vec[axis] > 0 ? '+' : '−'}${'xyz'[axis]}`;
+      return `(${vec.map((c) => c.toFixed(2)).join(', ')})`;
+    };
+    const { right, up } = v.screenAxes();
+    $('axes').textContent = `→ ${name(right)}\n↑ ${name(up)}`;
   }
 
-  cancelPolygon() {
-    this.polygon = [];
-    this.polygonClosed = false;
-    this.viewer.controls.enabled = true;
-    if (this.mode === 'polygon') this.setMode('orbit');
-    this.drawPolygon();
-    for (const id of ['finish-polygon', 'keep-inside', 'keep-outside', 'cancel-polygon']) $(id).disabled = true;
+  // --- selection in a fixed view ---------------------------------------------------------------
+
+  startSelection(kind) {
+    if (this.readOnly) return;
+    this.setMode('orbit');
+    this.tool.start(kind);
   }
 
-  drawPolygon() {
-    const overlay = $('overlay');
-    overlay.innerHTML = '';
-    if (!this.polygon.length) return;
-    const shape = document.createElementNS('http://www.w3.org/2000/svg', this.polygonClosed ? 'polygon' : 'polyline');
-    shape.setAttribute('points', this.polygon.map((p) => p.join(',')).join(' '));
-    overlay.appendChild(shape);
+  async applySelection(keep) {
+    if (!this.tool.ready) return;
+    const [path, body] = this.tool.request(keep);
+    await this.run(path, body);
   }
 
-  async split(keep) {
-    const rect = $('overlay').getBoundingClientRect();
-    const ndc = this.polygon.map(([x, y]) => [(x / rect.width) * 2 - 1, 1 - (y / rect.height) * 2]);
-    const body = { view_projection: this.viewer.viewProjection(), polygon: ndc, keep };
-    this.cancelPolygon();
-    await this.run('/api/split', body);
-  }
+  // --- picks, fits and measures ------------------------------------------------------------------
 
-  // --- 3D: pick and fit ---------------------------------------------------------------------
-
-  pickAt(e) {
-    if (this.mode !== 'pick') return;
+  clickScene(e) {
+    if (this.mode !== 'pick' && this.mode !== 'measure') return;
     const point = this.viewer.pick(e.clientX, e.clientY);
     if (!point) { this.showError('no point under the cursor'); return; }
-    this.picks.push(point);
-    this.showPicks();
+    this.showError('');
+    if (this.mode === 'pick') { this.picks.push(point); this.showPicks(); this.refreshPreview(); }
+    else { this.measures.push(point); this.showMeasures(); }
   }
 
-  clearPicks() { this.picks = []; this.lastFit = null; this.showPicks(); }
+  clearPicks() { this.picks = []; this.clearPreview(); this.showPicks(); }
 
   showPicks() {
     $('pick-count').textContent = `${this.picks.length} picked`;
     this.viewer.showPicks(this.picks);
+    if (!this.regionSizeSet && this.picks.length) {
+      const centre = this.picksCentre();
+      const spread = Math.max(...this.picks.map((p) => Math.hypot(p[0] - centre[0], p[1] - centre[1], p[2] - centre[2])));
+      $('region-size').value = String(Math.max(2, Math.round(3 * spread)));
+    }
   }
 
-  async fit(refit) {
+  picksCentre() { return [0, 1, 2].map((k) => this.picks.reduce((s, p) => s + p[k], 0) / this.picks.length); }
+
+  clearMeasures() { this.measures = []; this.showMeasures(); }
+
+  showMeasures() {
+    $('measure-result').textContent = describeMeasures(this.measures, this.scan.hierarchy.origin);
+    this.viewer.showMeasure(this.measures);
+  }
+
+  fitBody() {
+    const body = { kind: $('model-kind').value, seeds: this.picks, tolerance_m: Number($('tolerance-value').value) };
+    const kind = $('region-kind').value, size = Number($('region-size').value);
+    const centre = this.picksCentre();
+    if (kind === 'sphere') body.region = { kind, centre, radius_m: size };
+    else if (kind === 'box') body.region = { kind, min: centre.map((c) => c - size), max: centre.map((c) => c + size) };
+    return body;
+  }
+
+  async fitPreview() {
     if (!this.picks.length) { this.showError('pick points on the surface first'); return; }
-    if (refit && this.lastFit !== null) {
-      // a new tolerance replaces the last fit: undo it, fit again
-      await this.run('/api/undo', {});
-    }
-    const body = { kind: $('model-kind').value, seeds: this.picks, tolerance_m: Number($('tolerance').value) };
+    const body = this.fitBody();
+    this.viewer.showRegion(body.region || null);
+    const data = await this.run('/api/fit/preview', body, false, false);
+    if (!data) return;
+    this.preview = { body: JSON.stringify(body), model: data.model };
+    this.viewer.showPreview(data.sample);
+    const rms = data.rms_m === null ? '–' : `${(data.rms_m * 1000).toFixed(1)} mm`;
+    $('fit-result').textContent = `preview: ${data.model.kind}, ${data.n_inliers.toLocaleString()} inliers, rms ${rms}`;
+  }
+
+  refreshPreview() {
+    if (this.preview && this.picks.length) { clearTimeout(this.previewTimer); this.previewTimer = setTimeout(() => this.fitPreview(), 150); }
+  }
+
+  clearPreview() {
+    this.preview = null;
+    this.viewer.showPreview([]);
+    this.viewer.showRegion(null);
+  }
+
+  async fit() {
+    if (!this.picks.length) { this.showError('pick points on the surface first'); return; }
+    const body = this.fitBody();
+    if (this.preview && this.preview.body === JSON.stringify(body)) body.model = this.preview.model;
     const data = await this.run('/api/fit', body);
     if (data) {
       const r = data.result;
-      this.lastFit = r.entry_id;
-      $('fit-result').textContent = `${r.model.kind}: ${r.n_inliers.toLocaleString()} inliers, rms ${(r.rms_m * 1000).toFixed(1)} mm`;
+      const rms = r.rms_m === null ? '–' : `${(r.rms_m * 1000).toFixed(1)} mm`;
+      $('fit-result').textContent = `${r.model.kind}: ${r.n_inliers.toLocaleString()} inliers, rms ${rms}`;
+      this.clearPreview();
     }
   }
 
   // --- operations ----------------------------------------------------------------------------
 
   // Operations run one after the other, in the order they were asked for.
-  run(path, body, clearPicks = false) {
-    const next = this.queue.then(() => this.runNow(path, body, clearPicks));
+  run(path, body, clearPicks = false, refresh = true) {
+    const next = this.queue.then(() => this.runNow(path, body, clearPicks, refresh));
     this.queue = next.catch(() => null);
     return next;
   }
 
-  async runNow(path, body, clearPicks) {
+  async runNow(path, body, clearPicks, refresh) {
     this.busy = true;
     this.showStatus();
+    const watch = setTimeout(() => this.watchProgress(), 300);
     try {
-      const data = await api(path, body);
-      if (path !== '/api/fit') this.lastFit = null;
+      const data = await this.call(path, body);
       if (clearPicks) this.clearPicks();
       this.showError('');
-      await this.viewer.refreshStates();
-      this.showSummary(data.summary);
+      if (refresh) {
+        await this.viewer.refreshStates();
+        this.showSummary(data.summary);
+      }
       return data;
     } catch (error) {
       this.showError(error.message);
       return null;
     } finally {
+      clearTimeout(watch);
       this.busy = false;
+      $('progress').hidden = true;
       this.showStatus();
+    }
+  }
+
+  // Progress of a long operation, polled until it ends; it can be cancelled meanwhile.
+  async watchProgress() {
+    while (this.busy) {
+      try {
+        const p = await api('/api/progress');
+        if (!this.busy) break;
+        $('progress').hidden = false;
+        $('progress-bar').value = p.total ? p.done / p.total : 0;
+        $('progress-text').textContent = p.running ? `${p.operation}: ${Math.round((100 * p.done) / Math.max(p.total, 1))} %` : '';
+        $('cancel-operation').disabled = !p.cancellable;
+      } catch { /* the next poll will tell */ }
+      await new Promise((resolve) => setTimeout(resolve, 250));
+    }
+  }
+
+  // An assignment of the whole scan asks first (the server refuses it unconfirmed).
+  async call(path, body) {
+    try {
+      return await api(path, body);
+    } catch (error) {
+      if (error.status === 409 && error.data && error.data.confirm && path === '/api/assign') {
+        if (!window.confirm(`${error.message}?`)) throw new Error('assignment cancelled');
+        return api(path, { ...body, confirm_whole_scan: true });
+      }
+      throw error;
     }
   }
 
@@ -230,6 +420,34 @@ class LabelApp {
     } catch (error) {
       this.showError(error.message);
     }
+  }
+
+  async showStats(scope) {
+    const body = scope === 'view' ? { scope, view_projection: this.viewer.viewProjection() } : { scope };
+    const data = await this.run('/api/stats', body, false, false);
+    if (!data) return;
+    const classes = this.scan.classes;
+    const pct = (x) => (x === null ? '–' : (100 * x).toFixed(1));
+    let html = `<table><caption>${scope === 'view' ? 'in view' : 'working set'}: ${data.n_points.toLocaleString()} points</caption>`
+      + '<tr><th>class</th><th>points</th>' + (data.has_prediction ? '<th>predicted</th><th>prec.</th><th>recall</th><th>IoU</th>' : '') + '</tr>';
+    classes.forEach((c, value) => {
+      html += `<tr><td><span class="swatch" style="background:${c.colour}"></span> ${c.name}</td><td>${data.counts[value].toLocaleString()}</td>`;
+      if (data.has_prediction) {
+        html += `<td>${data.prediction_counts[value].toLocaleString()}</td>`;
+        html += value === 0 ? '<td></td><td></td><td></td>' : `<td>${pct(data.precision[value - 1])}</td><td>${pct(data.recall[value - 1])}</td><td>${pct(data.iou[value - 1])}</td>`;
+      }
+      html += '</tr>';
+    });
+    html += '</table>';
+    if (data.has_prediction) {
+      html += '<table class="confusion"><caption>confusion: rows truth, columns prediction</caption><tr><th></th>'
+        + classes.slice(1).map((c) => `<th title="${c.name}">${c.value}</th>`).join('') + '</tr>';
+      data.confusion.forEach((row, i) => {
+        html += `<tr><th title="${classes[i + 1].name}">${i + 1}</th>` + row.map((n) => `<td>${n}</td>`).join('') + '</tr>';
+      });
+      html += `</table><p class="muted">overall accuracy ${pct(data.overall_accuracy)} %</p>`;
+    }
+    $('stats').innerHTML = html;
   }
 
   showError(message) { $('error').textContent = message; }
@@ -265,7 +483,7 @@ class LabelApp {
   }
 
   async setLayer(value, change) {
-    if (this.summary.read_only) {
+    if (this.readOnly) {
       if (change.hidden !== undefined) { this.viewer.hidden[value] = change.hidden; this.viewer.recolour(); }
       return;
     }
@@ -280,7 +498,7 @@ class LabelApp {
     const s = this.viewer.stats();
     $('status').textContent = `${s.points.toLocaleString()} points in ${s.nodes} nodes shown` +
       (s.inFlight ? ` · loading ${s.inFlight}` : ' · idle') + (this.busy ? ' · working…' : '');
-    $('status').dataset.idle = String(!s.inFlight && !this.busy);
+    $('status').dataset.idle = String(!s.inFlight && !this.busy && !s.moving);
   }
 }
 
