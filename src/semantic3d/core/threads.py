@@ -1,0 +1,215 @@
+"""How many threads the package computes with: every core by default, fewer when asked.
+
+One number, the *thread budget* (:func:`thread_budget`), sizes everything that runs in
+parallel: numba's parallel kernels, the package's thread pools (segments of a text file,
+tiles of a scan, scans of a submission), scikit-learn's forest and the BLAS / OpenMP pools
+of compiled libraries. It is, first found:
+
+1. the limit set by :func:`set_thread_limit` (the command line's ``--threads N``);
+2. the smallest positive ``NUMBA_NUM_THREADS`` or ``OMP_NUM_THREADS`` of the environment;
+3. the cores this process may run on (its CPU affinity).
+
+Results never depend on it: every parallel path of the package splits work into pieces
+whose results are combined in a fixed order, so any budget gives the same bytes (tested).
+
+numba keeps its thread count per calling thread, so a thread pool of the package sets it
+in each worker (:func:`map_in_threads`); :func:`numba_threads` does it for one block of
+work. Nothing here imports numba: it is configured only when something else loaded it.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from collections import deque
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
+from contextlib import contextmanager
+from typing import TypeVar
+
+__all__ = [
+    "ENVIRONMENT_VARIABLES",
+    "available_cores",
+    "map_in_threads",
+    "numba_threads",
+    "set_thread_limit",
+    "thread_budget",
+]
+
+T = TypeVar("T")
+R = TypeVar("R")
+
+ENVIRONMENT_VARIABLES = ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS")
+"""Variables that cap the budget when no limit was set (the smallest positive one wins)."""
+
+_POOL_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+"""Set for libraries not loaded yet when a limit is set (numba's is set apart)."""
+
+_limit: int | None = None
+_saved_environment: dict[str, str | None] = {}
+
+
+def available_cores() -> int:
+    """Cores this process may run on (its affinity mask where the system has one)."""
+    if hasattr(os, "sched_getaffinity"):
+        return max(1, len(os.sched_getaffinity(0)))
+    return max(1, os.cpu_count() or 1)
+
+
+def _environment_limit() -> int | None:
+    values = []
+    for name in ENVIRONMENT_VARIABLES:
+        text = os.environ.get(name, "").strip()
+        if text.isdigit() and int(text) > 0:
+            values.append(int(text))
+    return min(values) if values else None
+
+
+def thread_budget() -> int:
+    """Threads the package's parallel work may use now (see the module docs)."""
+    if _limit is not None:
+        return _limit
+    found = _environment_limit()
+    return found if found is not None else available_cores()
+
+
+def set_thread_limit(n_threads: int | None) -> int:
+    """Cap this process's compute threads at ``n_threads`` (None: the default again).
+
+    Applies at once where it can: numba in the calling thread, the BLAS / OpenMP pools of
+    loaded libraries (through threadpoolctl when installed), and the environment of
+    libraries loaded later (``NUMBA_NUM_THREADS`` only while numba is not loaded, so that
+    its pool is sized for the limit). Returns the budget now in force.
+
+    Raises:
+        ValueError: ``n_threads`` is below 1.
+    """
+    global _limit
+    if n_threads is not None and (isinstance(n_threads, bool) or int(n_threads) < 1):
+        raise ValueError(f"threads: expected at least 1, found {n_threads!r}")
+    _limit = None if n_threads is None else int(n_threads)
+    if _limit is None:
+        _restore_environment()
+    else:
+        names = [*_POOL_VARIABLES, *(() if "numba" in sys.modules else ("NUMBA_NUM_THREADS",))]
+        for name in names:
+            _saved_environment.setdefault(name, os.environ.get(name))
+            os.environ[name] = str(_limit)
+    budget = thread_budget()
+    _set_numba_threads(budget)
+    if "threadpoolctl" in sys.modules or _limit is not None:
+        _limit_native_pools(budget)
+    return budget
+
+
+def _restore_environment() -> None:
+    for name, value in _saved_environment.items():
+        if value is None:
+            os.environ.pop(name, None)
+        else:
+            os.environ[name] = value
+    _saved_environment.clear()
+
+
+def _set_numba_threads(n_threads: int) -> None:
+    numba = sys.modules.get("numba")
+    if numba is None or not hasattr(numba, "set_num_threads"):
+        return
+    numba.set_num_threads(max(1, min(n_threads, int(numba.config.NUMBA_NUM_THREADS))))
+
+
+def _limit_native_pools(n_threads: int) -> None:
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # optional: environment variables cover libraries loaded later
+        return
+    threadpool_limits(n_threads)
+
+
+@contextmanager
+def numba_threads(n_threads: int | None = None) -> Iterator[int]:
+    """Run a block with numba's kernels on ``n_threads`` (default the budget) in this thread.
+
+    numba keeps the count per thread; the previous one is restored on exit. Yields the
+    count in force (never above the size of numba's pool).
+    """
+    wanted = thread_budget() if n_threads is None else max(1, int(n_threads))
+    numba = sys.modules.get("numba")
+    if numba is None or not hasattr(numba, "get_num_threads"):
+        yield wanted
+        return
+    before = numba.get_num_threads()
+    count = max(1, min(wanted, int(numba.config.NUMBA_NUM_THREADS)))
+    numba.set_num_threads(count)
+    try:
+        yield count
+    finally:
+        numba.set_num_threads(before)
+
+
+def map_in_threads(
+    function: Callable[[T], R],
+    items: Iterable[T],
+    *,
+    n_threads: int | None = None,
+    ordered: bool = True,
+    numba_threads_per_task: Callable[[T], int] | int = 1,
+    max_pending: int | None = None,
+    name: str = "semantic3d",
+) -> Iterator[R]:
+    """``function(item)`` for every item on a pool of ``n_threads`` (default the budget).
+
+    Results come in input order (``ordered``) or as tasks finish. At most ``max_pending``
+    tasks (default twice the threads) are submitted or waiting to be yielded at once, so
+    memory is bounded by them. Each task runs with numba on ``numba_threads_per_task``
+    threads (a number, or a function of the item): 1 where tasks alone fill the cores.
+    The first exception raised by a task is raised here (the earliest in input order when
+    ``ordered``); tasks not started are cancelled and running ones are waited for, also
+    when the caller stops iterating. With one thread, or one item, everything runs in the
+    calling thread (same results).
+    """
+    n_threads = thread_budget() if n_threads is None else max(1, int(n_threads))
+    iterator = iter(items)
+    if n_threads == 1:
+        for item in iterator:
+            with numba_threads(_task_threads(numba_threads_per_task, item, 1)):
+                yield function(item)
+        return
+    limit = max(n_threads, 2 * n_threads if max_pending is None else int(max_pending))
+
+    def run(item: T) -> R:
+        with numba_threads(_task_threads(numba_threads_per_task, item, n_threads)):
+            return function(item)
+
+    pool = ThreadPoolExecutor(max_workers=n_threads, thread_name_prefix=name)
+    pending: deque[Future[R]] = deque()
+    try:
+        exhausted = False
+        while True:
+            while not exhausted and len(pending) < limit:
+                item = next(iterator, _END)
+                if item is _END:
+                    exhausted = True
+                    break
+                pending.append(pool.submit(run, item))  # type: ignore[arg-type]
+            if not pending:
+                return
+            if ordered:
+                yield pending.popleft().result()
+                continue
+            done, _ = wait(pending, return_when=FIRST_COMPLETED)
+            for future in [f for f in pending if f in done]:
+                pending.remove(future)
+                yield future.result()
+    finally:
+        for future in pending:
+            future.cancel()
+        pool.shutdown(wait=True)
+
+
+_END = object()
+
+
+def _task_threads(per_task: Callable[[T], int] | int, item: T, ceiling: int) -> int:
+    wanted = per_task(item) if callable(per_task) else per_task
+    return max(1, min(int(wanted), max(ceiling, 1)))
