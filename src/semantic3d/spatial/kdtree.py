@@ -51,9 +51,8 @@ class KdTree:
         while (n >> depth) > max(1, int(leaf_size)):
             depth += 1
         self.depth = depth
-        self.order, self.bounds, self.boxes = _build(points, depth)
-        # the points in tree order: a leaf's points are contiguous in memory
-        self._sorted = np.ascontiguousarray(points[self.order])
+        # the points in tree order (a leaf's points contiguous) and their indices
+        self._sorted, self.order, self.bounds, self.boxes, self.axes = _build(points, depth)
 
     @property
     def n_points(self) -> int:
@@ -77,35 +76,62 @@ class KdTree:
         indices = np.empty((queries.shape[0], k), np.uint32)
         squared = np.empty((queries.shape[0], k), np.float32)
         _query(
-            self._sorted, self.order, self.bounds, self.boxes, self.depth, queries, indices, squared
+            self._sorted,
+            self.order,
+            self.bounds,
+            self.boxes,
+            self.axes,
+            self.depth,
+            queries,
+            indices,
+            squared,
         )
         return indices, squared
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _less(points: Any, order: Any, a: int, b: int, axis: int) -> bool:
+    """Row ``a`` before row ``b`` along ``axis`` (ties by point index)."""
+    pa, pb = points[a, axis], points[b, axis]
+    return pa < pb or (pa == pb and order[a] < order[b])
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _swap(points: Any, order: Any, a: int, b: int) -> None:
+    for axis in range(3):
+        points[a, axis], points[b, axis] = points[b, axis], points[a, axis]
+    order[a], order[b] = order[b], order[a]
+
+
 @numba.njit(cache=True, nogil=True)
 def _select(points: Any, order: Any, start: int, stop: int, nth: int, axis: int) -> None:
-    """Reorder ``order[start:stop]`` so that position ``nth`` holds the point it would hold
-    sorted by coordinate ``axis`` (ties by index), smaller before, larger after."""
+    """Reorder rows ``start:stop`` of ``points`` (and ``order`` with them) so that row
+    ``nth`` holds the row it would hold sorted along ``axis`` (ties by point index), the
+    rows before it not after it and the rows after it not before it."""
     low, high = start, stop - 1
     while low < high:
         middle = (low + high) // 2
-        # median of three as the pivot, compared as (coordinate, index)
-        a, b, c = order[low], order[middle], order[high]
-        if _less(points, b, a, axis):
-            a, b = b, a
-        if _less(points, c, b, axis):
-            b, c = c, b
-            if _less(points, b, a, axis):
-                a, b = b, a
-        pivot = b
+        # median of three moved to ``middle``, then Hoare's partition around it
+        if _less(points, order, middle, low, axis):
+            _swap(points, order, middle, low)
+        if _less(points, order, high, middle, axis):
+            _swap(points, order, high, middle)
+            if _less(points, order, middle, low, axis):
+                _swap(points, order, middle, low)
+        pivot_value = points[middle, axis]
+        pivot_index = order[middle]
         i, j = low, high
         while i <= j:
-            while _less(points, order[i], pivot, axis):
+            while points[i, axis] < pivot_value or (
+                points[i, axis] == pivot_value and order[i] < pivot_index
+            ):
                 i += 1
-            while _less(points, pivot, order[j], axis):
+            while pivot_value < points[j, axis] or (
+                points[j, axis] == pivot_value and pivot_index < order[j]
+            ):
                 j -= 1
             if i <= j:
-                order[i], order[j] = order[j], order[i]
+                _swap(points, order, i, j)
                 i += 1
                 j -= 1
         if nth <= j:
@@ -116,54 +142,50 @@ def _select(points: Any, order: Any, start: int, stop: int, nth: int, axis: int)
             return
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
-def _less(points: Any, a: Any, b: Any, axis: int) -> bool:
-    pa, pb = points[a, axis], points[b, axis]
-    return pa < pb or (pa == pb and a < b)
-
-
 @numba.njit(cache=True, nogil=True)
-def _box(points: Any, order: Any, start: int, stop: int, out: Any) -> None:
+def _box(points: Any, start: int, stop: int, out: Any) -> None:
     for axis in range(3):
         out[axis] = np.inf
         out[3 + axis] = -np.inf
-    for position in range(start, stop):
-        p = order[position]
+    for row in range(start, stop):
         for axis in range(3):
-            value = points[p, axis]
+            value = np.float64(points[row, axis])
             out[axis] = min(out[axis], value)
             out[3 + axis] = max(out[3 + axis], value)
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
-def _build(points: Any, depth: int) -> tuple[Any, Any, Any]:  # pragma: no cover - compiled
+def _build(
+    points: Any, depth: int
+) -> tuple[Any, Any, Any, Any, Any]:  # pragma: no cover - compiled
     """A balanced tree in heap layout: node ``i`` has children ``2i+1``, ``2i+2``; leaves
-    are the ``2**depth`` nodes of the last level. Returns the point order (each node's
-    points are ``order[bounds[i, 0]:bounds[i, 1]]``), the bounds and each node's box
-    (``lo xyz, hi xyz``)."""
+    are the ``2**depth`` nodes of the last level. Returns the points in tree order, the
+    point index of each of those rows, each node's rows (``bounds[i] = start, stop``) and
+    each node's box (``lo xyz, hi xyz``) and split axis."""
     n = points.shape[0]
     n_nodes = (1 << (depth + 1)) - 1
+    ordered = points.copy()
     order = np.arange(n).astype(np.int64)
     bounds = np.zeros((n_nodes, 2), np.int64)
     boxes = np.zeros((n_nodes, 6), np.float64)
+    axes = np.zeros(n_nodes, np.int64)
     bounds[0, 1] = n
     for level in range(depth + 1):
         first = (1 << level) - 1
         count = 1 << level
         for j in numba.prange(count):
             node = first + j
-            start, stop = bounds[node, 0], bounds[node, 1]
             box = np.empty(6, np.float64)
-            _box(points, order, start, stop, box)
+            _box(ordered, bounds[node, 0], bounds[node, 1], box)
             boxes[node] = box
             if level < depth:
-                _split(points, order, bounds, box, node)
-    return order, bounds, boxes
+                axes[node] = _split(ordered, order, bounds, box, node)
+    return ordered, order, bounds, boxes, axes
 
 
 @numba.njit(cache=True, nogil=True)
-def _split(points: Any, order: Any, bounds: Any, box: Any, node: int) -> None:
-    """Split a node at its middle point along its box's widest axis."""
+def _split(points: Any, order: Any, bounds: Any, box: Any, node: int) -> int:
+    """Split a node at its middle row along its box's widest axis; return the axis."""
     start, stop = bounds[node, 0], bounds[node, 1]
     axis = 0
     for candidate in range(1, 3):
@@ -176,19 +198,7 @@ def _split(points: Any, order: Any, bounds: Any, box: Any, node: int) -> None:
     bounds[2 * node + 1, 1] = middle
     bounds[2 * node + 2, 0] = middle
     bounds[2 * node + 2, 1] = stop
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def _box_distance(boxes: Any, node: int, x: float, y: float, z: float) -> float:
-    return _gap(boxes[node, 0], boxes[node, 3], x) + (
-        _gap(boxes[node, 1], boxes[node, 4], y) + _gap(boxes[node, 2], boxes[node, 5], z)
-    )
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def _gap(low: float, high: float, value: float) -> float:
-    gap = low - value if value < low else (value - high if value > high else 0.0)
-    return gap * gap
+    return axis
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -203,79 +213,82 @@ def _search(
     order: Any,
     bounds: Any,
     boxes: Any,
+    axes: Any,
     depth: int,
     query: Any,
     k: int,
-    heap_d: Any,
-    heap_i: Any,
+    best_d: Any,
+    best_i: Any,
     stack: Any,
     stack_d: Any,
 ) -> None:  # pragma: no cover - compiled
-    """The k smallest (distance, index) pairs of one query into a max-heap of size k
-    (``points`` in tree order: ``points[i]`` is point ``order[i]``)."""
+    """The k smallest (distance, index) pairs of one query, ascending, into ``best_*``
+    (``points`` in tree order: ``points[i]`` is point ``order[i]``).
+
+    Depth first, nearer child first; a node is skipped when a lower bound of its distance
+    (kept per axis as the search descends, as nanoflann does) exceeds the k-th distance
+    found. ``stack_d`` rows hold that bound and its three per-axis parts.
+    """
     qx, qy, qz = query[0], query[1], query[2]
-    x, y, z = np.float64(qx), np.float64(qy), np.float64(qz)
     size = 0
     first_leaf = (1 << depth) - 1
-    top = 0
     stack[0] = 0
-    stack_d[0] = 0.0
+    total = 0.0
+    for axis in range(3):
+        value = np.float64(query[axis])
+        low, high = boxes[0, axis], boxes[0, 3 + axis]
+        gap = low - value if value < low else (value - high if value > high else 0.0)
+        stack_d[0, 1 + axis] = gap * gap
+        total += gap * gap
+    stack_d[0, 0] = total
     top = 1
     while top:
         top -= 1
         node = stack[top]
-        if size == k and stack_d[top] > np.float64(heap_d[0]) * (1.0 + _PRUNE_MARGIN) + 1e-30:
+        bound = stack_d[top, 0]
+        if size == k and bound > np.float64(best_d[k - 1]) * (1.0 + _PRUNE_MARGIN) + 1e-30:
             continue
         if node >= first_leaf:
             for position in range(bounds[node, 0], bounds[node, 1]):
-                p = order[position]
                 dx = qx - points[position, 0]
                 dy = qy - points[position, 1]
                 dz = qz - points[position, 2]
                 d = (dx * dx + dy * dy) + dz * dz
-                if size < k:
-                    # sift up
+                if size == k:
+                    if d > best_d[k - 1]:
+                        continue
+                    p = order[position]
+                    if not _worse(best_d[k - 1], best_i[k - 1], d, p):
+                        continue
+                    c = k - 1
+                else:
+                    p = order[position]
                     c = size
                     size += 1
-                    while c > 0:
-                        parent = (c - 1) // 2
-                        if _worse(d, p, heap_d[parent], heap_i[parent]):
-                            heap_d[c] = heap_d[parent]
-                            heap_i[c] = heap_i[parent]
-                            c = parent
-                        else:
-                            break
-                    heap_d[c] = d
-                    heap_i[c] = p
-                elif _worse(heap_d[0], heap_i[0], d, p):
-                    # replace the root, sift down
-                    c = 0
-                    while True:
-                        child = 2 * c + 1
-                        if child >= k:
-                            break
-                        if child + 1 < k and _worse(
-                            heap_d[child + 1], heap_i[child + 1], heap_d[child], heap_i[child]
-                        ):
-                            child += 1
-                        if _worse(heap_d[child], heap_i[child], d, p):
-                            heap_d[c] = heap_d[child]
-                            heap_i[c] = heap_i[child]
-                            c = child
-                        else:
-                            break
-                    heap_d[c] = d
-                    heap_i[c] = p
+                while c > 0 and _worse(best_d[c - 1], best_i[c - 1], d, p):
+                    best_d[c] = best_d[c - 1]
+                    best_i[c] = best_i[c - 1]
+                    c -= 1
+                best_d[c] = d
+                best_i[c] = p
             continue
+        axis = axes[node]
         left, right = 2 * node + 1, 2 * node + 2
-        dl = _box_distance(boxes, left, x, y, z)
-        dr = _box_distance(boxes, right, x, y, z)
-        if dl <= dr:  # the nearer child is popped first
-            stack[top], stack_d[top] = right, dr
-            stack[top + 1], stack_d[top + 1] = left, dl
+        value = np.float64(query[axis])
+        below = value - boxes[left, 3 + axis]  # past the left child's highest
+        above = value - boxes[right, axis]  # past the right child's lowest
+        if below + above < 0.0:  # nearer the left child
+            near, far, cut = left, right, above * above
         else:
-            stack[top], stack_d[top] = left, dl
-            stack[top + 1], stack_d[top + 1] = right, dr
+            near, far, cut = right, left, below * below
+        # the far child: the bound with this axis's part replaced by the cut's
+        stack[top] = far
+        stack_d[top, 0] = bound - stack_d[top, 1 + axis] + cut
+        stack_d[top + 1, 0] = bound
+        for part in range(3):
+            stack_d[top + 1, 1 + part] = stack_d[top, 1 + part]
+        stack_d[top, 1 + axis] = cut
+        stack[top + 1] = near
         top += 2
 
 
@@ -285,6 +298,7 @@ def _query(
     order: Any,
     bounds: Any,
     boxes: Any,
+    axes: Any,
     depth: int,
     queries: Any,
     indices: Any,
@@ -293,24 +307,25 @@ def _query(
     m, k = indices.shape
     n_blocks = (m + _QUERY_BLOCK - 1) // _QUERY_BLOCK
     for block in numba.prange(n_blocks):
-        heap_d = np.empty(k, np.float32)
-        heap_i = np.empty(k, np.int64)
-        stack = np.empty(2 * depth + 2, np.int64)
-        stack_d = np.empty(2 * depth + 2, np.float64)
+        best_d = np.empty(k, np.float32)
+        best_i = np.empty(k, np.int64)
+        stack = np.empty(depth + 2, np.int64)
+        stack_d = np.empty((depth + 2, 4), np.float64)
         for row in range(block * _QUERY_BLOCK, min(m, (block + 1) * _QUERY_BLOCK)):
             _search(
-                points, order, bounds, boxes, depth, queries[row], k, heap_d, heap_i, stack, stack_d
+                points,
+                order,
+                bounds,
+                boxes,
+                axes,
+                depth,
+                queries[row],
+                k,
+                best_d,
+                best_i,
+                stack,
+                stack_d,
             )
-            # heap -> ascending (k is small: insertion sort)
-            for a in range(1, k):
-                d, i = heap_d[a], heap_i[a]
-                b = a - 1
-                while b >= 0 and _worse(heap_d[b], heap_i[b], d, i):
-                    heap_d[b + 1] = heap_d[b]
-                    heap_i[b + 1] = heap_i[b]
-                    b -= 1
-                heap_d[b + 1] = d
-                heap_i[b + 1] = i
             for a in range(k):
-                indices[row, a] = heap_i[a]
-                squared[row, a] = heap_d[a]
+                indices[row, a] = best_i[a]
+                squared[row, a] = best_d[a]
