@@ -20,16 +20,19 @@ work. Nothing here imports numba: it is configured only when something else load
 from __future__ import annotations
 
 import os
+import queue
 import sys
+import threading
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from typing import TypeVar
 
 __all__ = [
     "ENVIRONMENT_VARIABLES",
     "available_cores",
+    "iter_ahead",
     "map_in_threads",
     "numba_threads",
     "set_thread_limit",
@@ -213,3 +216,58 @@ _END = object()
 def _task_threads(per_task: Callable[[T], int] | int, item: T, ceiling: int) -> int:
     wanted = per_task(item) if callable(per_task) else per_task
     return max(1, min(int(wanted), max(ceiling, 1)))
+
+
+def iter_ahead(
+    items: Iterable[T], *, depth: int = 1, name: str = "semantic3d-ahead"
+) -> Iterator[T]:
+    """The items of ``items``, produced on a thread of their own up to ``depth`` ahead.
+
+    The producer's work (parsing a file, casting rays) then overlaps the consumer's
+    (binning, formatting, writing); the items and their order are those of ``items``. An
+    exception of the producer is raised here when its turn comes; when the consumer stops
+    early (or fails), the producer stops after its current item. The producer runs numba
+    on the thread budget.
+    """
+    slots: queue.Queue[tuple[int, object]] = queue.Queue(maxsize=max(1, depth))
+    stop = threading.Event()
+
+    iterator = iter(items)
+
+    def produce() -> None:
+        try:
+            with numba_threads():
+                for item in iterator:
+                    slots.put((_ITEM, item))
+                    if stop.is_set():
+                        break
+                else:
+                    slots.put((_DONE, None))
+        except BaseException as exc:  # handed to the consumer
+            slots.put((_FAILED, exc))
+        finally:
+            if stop.is_set():  # the consumer left: release the producer's resources here
+                close = getattr(iterator, "close", None)
+                if close is not None:
+                    close()
+
+    thread = threading.Thread(target=produce, name=name, daemon=True)
+    thread.start()
+    try:
+        while True:
+            kind, value = slots.get()
+            if kind == _DONE:
+                return
+            if kind == _FAILED:
+                assert isinstance(value, BaseException)
+                raise value
+            yield value  # type: ignore[misc]
+    finally:
+        stop.set()
+        while thread.is_alive():  # unblock a producer waiting for a free slot
+            with suppress(queue.Empty):
+                slots.get(timeout=0.05)
+        thread.join()
+
+
+_ITEM, _DONE, _FAILED = range(3)
