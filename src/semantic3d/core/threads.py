@@ -190,11 +190,12 @@ def map_in_threads(
         exhausted = False
         while True:
             while not exhausted and len(pending) < limit:
-                item = next(iterator, _END)
-                if item is _END:
+                try:
+                    item = next(iterator)
+                except StopIteration:
                     exhausted = True
                     break
-                pending.append(pool.submit(run, item))  # type: ignore[arg-type]
+                pending.append(pool.submit(run, item))
             if not pending:
                 return
             if ordered:
@@ -209,8 +210,6 @@ def map_in_threads(
             future.cancel()
         pool.shutdown(wait=True)
 
-
-_END = object()
 
 
 def _task_threads(per_task: Callable[[T], int] | int, item: T, ceiling: int) -> int:
