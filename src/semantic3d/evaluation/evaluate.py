@@ -22,6 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from semantic3d.core.errors import DataFormatError, SubmissionError
+from semantic3d.core.threads import map_in_threads, thread_budget
 from semantic3d.evaluation.challenge import Challenge, ChallengeScan
 from semantic3d.evaluation.contents import (
     READ_FAILURES,
@@ -217,7 +218,9 @@ def evaluate_submission(
         progress: called as ``progress(done_bytes, total_bytes)`` of ground truth read.
         chunk_size: label pairs accumulated at a time.
         map_scans: scores the scans elsewhere (:func:`evaluate_submitted_scan` per scan,
-            e.g. on a Dask cluster) instead of one after another here; same result.
+            e.g. on a Dask cluster); default: on threads of this process, as many scans
+            at once as the thread budget holds pairs of threads (one scan at a time on
+            fewer than 4); same result.
 
     Raises:
         SubmissionError: the submission is invalid; ``.problems`` lists every problem.
@@ -230,6 +233,9 @@ def evaluate_submission(
     per_scan: list[ScanResult] = []
     gt_bytes = sum(s.ground_truth.stat().st_size for s in challenge.scans if s.ground_truth)
     tracker = _Progress(progress, gt_bytes)
+    if map_scans is None and len(challenge.scans) > 1 and thread_budget() >= 2 * _SCAN_THREADS:
+        # scans at the same time, each on its own threads (same result, merged in order)
+        map_scans = partial(_map_in_threads, n_threads=thread_budget() // _SCAN_THREADS)
     if map_scans is not None:
         return _evaluate_mapped(
             submission,
@@ -271,6 +277,18 @@ def evaluate_submission(
             tracker.done += gt_path.stat().st_size
             tracker.report()
     return _result(submission, challenge, protocol, method, problems, total, per_scan)
+
+
+_SCAN_THREADS = 2
+"""Threads one scan keeps busy: its ground truth is parsed beside its prediction."""
+
+
+def _map_in_threads(
+    function: Callable[[int], ScanEvaluation], items: Sequence[int], *, n_threads: int
+) -> Iterator[ScanEvaluation]:
+    return map_in_threads(
+        function, items, n_threads=n_threads, numba_threads_per_task=1, name="s3d-scan"
+    )
 
 
 def _evaluate_mapped(
