@@ -211,7 +211,6 @@ def map_in_threads(
         pool.shutdown(wait=True)
 
 
-
 def _task_threads(per_task: Callable[[T], int] | int, item: T, ceiling: int) -> int:
     wanted = per_task(item) if callable(per_task) else per_task
     return max(1, min(int(wanted), max(ceiling, 1)))

@@ -42,7 +42,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from semantic3d.core.errors import ShapeError
 from semantic3d.core.pointcloud import PointCloud
-from semantic3d.core.threads import map_in_threads, thread_budget
+from semantic3d.core.threads import iter_ahead, map_in_threads, thread_budget
 from semantic3d.features.config import ConfigError, FeatureConfig
 from semantic3d.features.multiscale import (
     FeatureTable,
@@ -254,7 +254,10 @@ class TiledScan:
             cell_size_m=config.base_voxel_size_m,
             cells_per_tile=self.tile_cells,
         )
-        store = build_tile_store(chain([first], stream), self.workdir / "points", grid=grid)
+        # the next chunks are read (parsed on their own thread) while these are binned
+        store = build_tile_store(
+            chain([first], iter_ahead(stream, name="s3d-spill")), self.workdir / "points", grid=grid
+        )
         logger.info("spilled %d points into %d tiles", store.n_points, len(store.tiles))
         return store
 
