@@ -22,6 +22,7 @@ from semantic3d.cli.console import (
     plural,
     progress_bar,
     refuse_existing,
+    threads_option,
 )
 
 if TYPE_CHECKING:
@@ -63,6 +64,7 @@ def train(
     preset: str | None = typer.Option(None, "--preset", help="paper or small (without --config)."),
     seed: int | None = typer.Option(None, "--seed", help="Override the configuration's seed."),
     overwrite: bool = typer.Option(False, "--overwrite", help=_OVERWRITE_HELP),
+    threads: int | None = threads_option(),
 ) -> None:
     """Render the labelled scans' cube maps from their stations and train a segmenter."""
     with guarded():
@@ -113,6 +115,7 @@ def predict(
     no_faces: bool = typer.Option(False, "--no-faces", help="Skip the face pictures."),
     workdir: Path | None = typer.Option(None, "--workdir", help="Scratch folder."),
     overwrite: bool = typer.Option(False, "--overwrite", help=_OVERWRITE_HELP),
+    threads: int | None = threads_option(),
 ) -> None:
     """Label scans: NAME.labels + run record, and NAME.faces/ (colour | truth | prediction)."""
     with guarded():

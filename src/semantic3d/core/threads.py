@@ -32,6 +32,7 @@ from typing import TypeVar
 __all__ = [
     "ENVIRONMENT_VARIABLES",
     "available_cores",
+    "current_thread_limit",
     "iter_ahead",
     "map_in_threads",
     "numba_threads",
@@ -49,6 +50,7 @@ _POOL_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 """Set for libraries not loaded yet when a limit is set (numba's is set apart)."""
 
 _limit: int | None = None
+_task = threading.local()  # a task's share of the budget (see _task_budget)
 _saved_environment: dict[str, str | None] = {}
 
 
@@ -69,11 +71,20 @@ def _environment_limit() -> int | None:
 
 
 def thread_budget() -> int:
-    """Threads the package's parallel work may use now (see the module docs)."""
+    """Threads the package's parallel work may use now (see the module docs); inside a
+    task of :func:`map_in_threads` (or a :func:`numba_threads` block), the task's share."""
+    share: int | None = getattr(_task, "budget", None)
+    if share is not None:
+        return share
     if _limit is not None:
         return _limit
     found = _environment_limit()
     return found if found is not None else available_cores()
+
+
+def current_thread_limit() -> int | None:
+    """The limit :func:`set_thread_limit` set (None: none)."""
+    return _limit
 
 
 def set_thread_limit(n_threads: int | None) -> int:
@@ -122,6 +133,9 @@ def _set_numba_threads(n_threads: int) -> None:
 
 
 def _limit_native_pools(n_threads: int) -> None:
+    torch = sys.modules.get("torch")
+    if torch is not None:
+        torch.set_num_threads(n_threads)
     try:
         from threadpoolctl import threadpool_limits
     except ImportError:  # optional: environment variables cover libraries loaded later
@@ -139,15 +153,29 @@ def numba_threads(n_threads: int | None = None) -> Iterator[int]:
     wanted = thread_budget() if n_threads is None else max(1, int(n_threads))
     numba = sys.modules.get("numba")
     if numba is None or not hasattr(numba, "get_num_threads"):
-        yield wanted
+        with _task_budget(wanted):
+            yield wanted
         return
     before = numba.get_num_threads()
     count = max(1, min(wanted, int(numba.config.NUMBA_NUM_THREADS)))
     numba.set_num_threads(count)
     try:
-        yield count
+        with _task_budget(wanted):
+            yield count
     finally:
         numba.set_num_threads(before)
+
+
+@contextmanager
+def _task_budget(n_threads: int) -> Iterator[None]:
+    """Within the block, :func:`thread_budget` in this thread is ``n_threads`` (work that
+    fans out again from a task uses the task's share, not the whole budget)."""
+    before = getattr(_task, "budget", None)
+    _task.budget = n_threads
+    try:
+        yield
+    finally:
+        _task.budget = before
 
 
 def map_in_threads(
@@ -231,10 +259,11 @@ def iter_ahead(
     stop = threading.Event()
 
     iterator = iter(items)
+    budget = thread_budget()  # the caller's (a task's share inside a task)
 
     def produce() -> None:
         try:
-            with numba_threads():
+            with numba_threads(budget):
                 for item in iterator:
                     slots.put((_ITEM, item))
                     if stop.is_set():
