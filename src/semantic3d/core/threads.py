@@ -193,7 +193,9 @@ def map_in_threads(
     Results come in input order (``ordered``) or as tasks finish. At most ``max_pending``
     tasks (default twice the threads) are submitted or waiting to be yielded at once, so
     memory is bounded by them. Each task runs with numba on ``numba_threads_per_task``
-    threads (a number, or a function of the item): 1 where tasks alone fill the cores.
+    threads (a number, or a function of the item): 1 where tasks alone fill the cores. A
+    task starts only when its threads are free, so the tasks running at once never use
+    more than ``n_threads`` threads together.
     The first exception raised by a task is raised here (the earliest in input order when
     ``ordered``); tasks not started are cancelled and running ones are waited for, also
     when the caller stops iterating. With one thread, or one item, everything runs in the
@@ -207,9 +209,11 @@ def map_in_threads(
                 yield function(item)
         return
     limit = max(n_threads, 2 * n_threads if max_pending is None else int(max_pending))
+    tokens = _Tokens(n_threads)
 
     def run(item: T) -> R:
-        with numba_threads(_task_threads(numba_threads_per_task, item, n_threads)):
+        count = _task_threads(numba_threads_per_task, item, n_threads)
+        with tokens.held(count), numba_threads(count):
             return function(item)
 
     pool = ThreadPoolExecutor(max_workers=n_threads, thread_name_prefix=name)
@@ -239,31 +243,61 @@ def map_in_threads(
         pool.shutdown(wait=True)
 
 
+class _Tokens:
+    """``n`` threads' worth of tokens; a task holds as many as it runs threads."""
+
+    def __init__(self, n: int) -> None:
+        self.free = n
+        self.condition = threading.Condition()
+
+    @contextmanager
+    def held(self, count: int) -> Iterator[None]:
+        with self.condition:
+            self.condition.wait_for(lambda: self.free >= count)
+            self.free -= count
+        try:
+            yield
+        finally:
+            with self.condition:
+                self.free += count
+                self.condition.notify_all()
+
+
 def _task_threads(per_task: Callable[[T], int] | int, item: T, ceiling: int) -> int:
     wanted = per_task(item) if callable(per_task) else per_task
     return max(1, min(int(wanted), max(ceiling, 1)))
 
 
 def iter_ahead(
-    items: Iterable[T], *, depth: int = 1, name: str = "semantic3d-ahead"
+    items: Iterable[T],
+    *,
+    depth: int = 1,
+    consumer_threads: int = 1,
+    name: str = "semantic3d-ahead",
 ) -> Iterator[T]:
     """The items of ``items``, produced on a thread of their own up to ``depth`` ahead.
 
     The producer's work (parsing a file, casting rays) then overlaps the consumer's
-    (binning, formatting, writing); the items and their order are those of ``items``. An
-    exception of the producer is raised here when its turn comes; when the consumer stops
-    early (or fails), the producer stops after its current item. The producer runs numba
-    on the thread budget.
+    (binning, formatting, writing); the items and their order are those of ``items``. The
+    budget is split: the consumer's numba kernels run on ``consumer_threads`` threads
+    while it handles an item, the producer's on the rest. With a budget of one thread
+    nothing overlaps (the items are produced in the caller's thread). An exception of the
+    producer is raised here when its turn comes; when the consumer stops early (or
+    fails), the producer stops after its current item.
     """
     slots: queue.Queue[tuple[int, object]] = queue.Queue(maxsize=max(1, depth))
     stop = threading.Event()
 
-    iterator = iter(items)
     budget = thread_budget()  # the caller's (a task's share inside a task)
+    if budget == 1:  # nothing to overlap with: one thread does both, in turn
+        yield from items
+        return
+    consumer_threads = max(1, min(int(consumer_threads), budget - 1))
+    iterator = iter(items)
 
     def produce() -> None:
         try:
-            with numba_threads(budget):
+            with numba_threads(budget - consumer_threads):
                 for item in iterator:
                     slots.put((_ITEM, item))
                     if stop.is_set():
@@ -288,7 +322,8 @@ def iter_ahead(
             if kind == _FAILED:
                 assert isinstance(value, BaseException)
                 raise value
-            yield value  # type: ignore[misc]
+            with numba_threads(consumer_threads):  # the consumer's share while it works
+                yield value  # type: ignore[misc]
     finally:
         stop.set()
         while thread.is_alive():  # unblock a producer waiting for a free slot

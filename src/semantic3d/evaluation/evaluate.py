@@ -79,6 +79,36 @@ def _reading_prediction() -> Iterator[None]:
         raise _PredictionUnreadableError(exc) from exc
 
 
+class _Ahead:
+    """A one-thread pool, or (``threaded`` False) one that runs each call at once."""
+
+    def __init__(self, threaded: bool) -> None:
+        self.pool = (
+            ThreadPoolExecutor(max_workers=1, thread_name_prefix="semantic3d-truth")
+            if threaded
+            else None
+        )
+
+    def __enter__(self) -> _Ahead:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self.pool is not None:
+            self.pool.shutdown(wait=True)
+
+    def submit(
+        self, function: Callable[[int], NDArray[np.uint8]], argument: int
+    ) -> Future[NDArray[np.uint8]]:
+        if self.pool is not None:
+            return self.pool.submit(function, argument)
+        done: Future[NDArray[np.uint8]] = Future()
+        try:
+            done.set_result(function(argument))
+        except BaseException as exc:
+            done.set_exception(exc)
+        return done
+
+
 def _stream_pair(
     truth: LabelStream,
     pred: LabelStream,
@@ -90,9 +120,10 @@ def _stream_pair(
     """Accumulate (truth, prediction) chunks, then parse what is left of either stream.
 
     The ground truth is parsed one chunk ahead in a worker thread (the kernels and file
-    reads release the GIL) while this thread inflates and parses the prediction.
+    reads release the GIL) while this thread inflates and parses the prediction; with a
+    thread budget of one, both in this thread.
     """
-    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="semantic3d-truth") as pool:
+    with _Ahead(thread_budget() > 1) as pool:
         pending: Future[NDArray[np.uint8]] | None = pool.submit(truth.read, chunk_size)
         while pending is not None:
             y_true = pending.result()

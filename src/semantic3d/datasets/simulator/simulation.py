@@ -19,7 +19,7 @@ import numpy as np
 
 from semantic3d import __version__
 from semantic3d.core import N_CLASSES, class_by_value
-from semantic3d.core.threads import iter_ahead
+from semantic3d.core.threads import iter_ahead, thread_budget
 from semantic3d.datasets.simulator.errors import SimulationConfigError
 from semantic3d.datasets.simulator.scanner import (
     Scanner,
@@ -267,6 +267,8 @@ def _write_station(
         iter_sweep_blocks(
             compiled, station, plan=plan, seed=seed, scanner=scanner, chunk_size=chunk_size
         ),
+        # formatting and writing cost about a sixth of casting and shading
+        consumer_threads=max(1, round(thread_budget() / 6)),
         name="semantic3d-sweep",
     )
     with open_ascii_writer(points_path, labels_path=labels_path) as writer:
