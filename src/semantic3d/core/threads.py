@@ -38,6 +38,7 @@ __all__ = [
     "numba_threads",
     "set_thread_limit",
     "thread_budget",
+    "thread_limit",
 ]
 
 T = TypeVar("T")
@@ -333,3 +334,17 @@ def iter_ahead(
 
 
 _ITEM, _DONE, _FAILED = range(3)
+
+
+@contextmanager
+def thread_limit(n_threads: int | None) -> Iterator[int]:
+    """:func:`set_thread_limit` for the block; the previous limit is back afterwards.
+
+    Yields the budget in force inside the block.
+    """
+    previous = _limit
+    budget = set_thread_limit(n_threads)
+    try:
+        yield budget
+    finally:
+        set_thread_limit(previous)
