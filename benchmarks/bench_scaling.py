@@ -164,15 +164,11 @@ def child(job: dict[str, Any]) -> dict[str, Any]:
             out = work / f"predict{n}.labels"
             return predict_scan(model, scan, out_path=out, workdir=work, overwrite=True).n_points
 
-        run_small = lambda: (
-            predict_scan(  # noqa: E731
-                model,
-                Path(job["small"]),
-                out_path=work / f"warm{n}.labels",
-                workdir=work,
-                overwrite=True,
-            ).n_points
-        )
+        def run_small() -> int:
+            out = work / f"warm{n}.labels"
+            small = Path(job["small"])
+            return predict_scan(model, small, out_path=out, workdir=work, overwrite=True).n_points
+
         peer = None
     elif path == "train":
         from semantic3d.baselines.covariance.config import CovarianceConfig
