@@ -478,37 +478,49 @@ def parse_window(
     rgb: np.ndarray,
     slow: np.ndarray,
     state: np.ndarray,
-) -> int:  # pragma: no cover - compiled
+) -> tuple[int, int, int]:  # pragma: no cover - compiled
     """Parse the segments ``bounds[s]:bounds[s + 1]`` of a window, each on its own thread.
 
-    Counts the lines of every segment (in parallel), and when they fit in ``room`` rows
-    parses every segment (in parallel) into the rows from ``first_row`` on, segment ``s``
-    at its count's offset; each segment's :func:`parse_segment` result and end go to
-    ``state[s]``, its deferred tokens to ``slow[s]``. Returns the number of lines, or
-    minus that number (nothing parsed) when they do not fit. One call per window: the
-    caller runs no Python per segment.
+    Counts the lines of every segment (in parallel); when they are more than ``room``
+    rows, the window is cut after the ``room``-th line (only the segment holding the cut
+    is scanned for it). Then parses every segment (in parallel) into the rows from
+    ``first_row`` on, segment ``s`` at its count's offset; its :func:`parse_segment`
+    result and end go to ``state[s]``, its deferred tokens to ``slow[s]``. Returns
+    ``(lines, segments, end of the window)``. One call per window: the caller runs no
+    Python per segment.
     """
     n = bounds.shape[0] - 1
     counts = np.empty(n, np.int64)
     for s in nb.prange(n):
         counts[s] = count_lines(buf, bounds[s], bounds[s + 1])
     total = 0
-    rows = np.empty(n, np.int64)
     for s in range(n):
-        rows[s] = first_row + total
         total += counts[s]
-    if total > room:
-        return -total
+    if total > room:  # the batch's last lines: cut inside the segment that reaches room
+        before = 0
+        cut = 0
+        while before + counts[cut] < room:
+            before += counts[cut]
+            cut += 1
+        bounds[cut + 1] = after_newline(buf, bounds[cut], room - before)
+        counts[cut] = room - before
+        n = cut + 1
+        total = room
+    rows = np.empty(n, np.int64)
+    row = first_row
+    for s in range(n):
+        rows[s] = row
+        row += counts[s]
     for s in nb.prange(n):
-        status, pos, row, n_slow = _run(
+        status, pos, last, n_slow = _run(
             buf, readable, bounds[s], bounds[s + 1], rows[s], xyz, intensity, rgb, slow[s], 0
         )
         state[s, STATE_STATUS] = status
         state[s, STATE_POS] = pos
-        state[s, STATE_ROW] = row
+        state[s, STATE_ROW] = last
         state[s, STATE_SLOW] = n_slow
         state[s, STATE_END] = bounds[s + 1]
-    return total
+    return total, n, bounds[n]
 
 
 @nb.njit(cache=True, nogil=True)

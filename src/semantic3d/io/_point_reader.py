@@ -52,7 +52,8 @@ def iter_point_batches(path: Path, chunk_size: int, window_bytes: int) -> Iterat
         if mapped is None:
             regions = _block_regions(path, window_bytes)
         else:
-            regions = _mapped_regions(path, mapped, size)
+            step = max(_RELEASE_BYTES, 2 * reader.window_bytes)
+            regions = _mapped_regions(path, mapped, size, step)
         try:
             yield from reader.run(regions, size if mapped is not None else None)
         finally:
@@ -80,7 +81,8 @@ class _Reader:
     def __init__(self, path: Path, chunk_size: int, window_bytes: int) -> None:
         self.path = path
         self.chunk_size = chunk_size
-        self.window_bytes = max(int(window_bytes), 1)
+        # more threads, longer windows: the Python between two windows stays a small share
+        self.window_bytes = max(int(window_bytes), 1) * max(1, numba.get_num_threads() // 4)
         self.batch_rows = chunk_size * max(1, -(-MIN_BATCH_ROWS // chunk_size))
         # several segments per thread: equal bytes are not equal work on a loaded machine
         self.max_segments = max(1, numba.get_num_threads() * 4)
@@ -120,24 +122,20 @@ class _Reader:
         if window_stop < 0:
             raise _long_line_error(self.path)
         room = batch.capacity - batch.filled
-        while True:
-            n_segments = int(max(1, min(self.max_segments, (window_stop - pos) // _SEGMENT_BYTES)))
-            bounds = kernels.segment_bounds(buf, pos, window_stop, n_segments)
-            n_lines = kernels.parse_window(
-                buf,
-                readable,
-                bounds,
-                batch.filled,
-                room,
-                batch.xyz,
-                batch.intensity,
-                batch.rgb,
-                self.slow,
-                self.state,
-            )
-            if n_lines >= 0:
-                break
-            window_stop = kernels.after_newline(buf, pos, room)  # the batch's last lines
+        n_segments = int(max(1, min(self.max_segments, (window_stop - pos) // _SEGMENT_BYTES)))
+        bounds = kernels.segment_bounds(buf, pos, window_stop, n_segments)
+        n_lines, n_segments, window_stop = kernels.parse_window(
+            buf,
+            readable,
+            bounds,
+            batch.filled,
+            room,
+            batch.xyz,
+            batch.intensity,
+            batch.rgb,
+            self.slow,
+            self.state,
+        )
         state = self.state[:n_segments]
         if state[:, kernels.STATE_STATUS].any() or state[:, kernels.STATE_SLOW].any():
             for segment in range(n_segments):
@@ -213,7 +211,9 @@ def _map(stream: object, size: int) -> mmap.mmap | None:
     return mapped
 
 
-def _mapped_regions(path: Path, mapped: mmap.mmap, size: int) -> Generator[_Region, None, None]:
+def _mapped_regions(
+    path: Path, mapped: mmap.mmap, size: int, step: int
+) -> Generator[_Region, None, None]:
     """The mapped file up to its last newline, then (padded copy) a last line without one."""
     body_end = mapped.rfind(b"\n") + 1
     if size - body_end > MAX_LINE_BYTES:
@@ -221,7 +221,7 @@ def _mapped_regions(path: Path, mapped: mmap.mmap, size: int) -> Generator[_Regi
     buf = np.frombuffer(mapped, np.uint8)
     try:
         if body_end:
-            yield from _released(mapped, buf, body_end, size)
+            yield from _released(mapped, buf, body_end, size, step)
         if body_end < size:
             tail = mapped[body_end:size] + b"\n" + bytes(kernels.FAST_MARGIN)
             padded = np.frombuffer(tail, np.uint8)
@@ -230,7 +230,9 @@ def _mapped_regions(path: Path, mapped: mmap.mmap, size: int) -> Generator[_Regi
         del buf
 
 
-def _released(mapped: mmap.mmap, buf: np.ndarray, body_end: int, size: int) -> Iterator[_Region]:
+def _released(
+    mapped: mmap.mmap, buf: np.ndarray, body_end: int, size: int, step: int
+) -> Iterator[_Region]:
     """Yield the body in steps, dropping the pages behind the cursor from the mapping.
 
     Dropped pages stay in the page cache; they only stop counting as this process's
@@ -239,12 +241,12 @@ def _released(mapped: mmap.mmap, buf: np.ndarray, body_end: int, size: int) -> I
     released = 0
     start = 0
     while start < body_end:
-        stop = min(start + _RELEASE_BYTES, body_end)
+        stop = min(start + step, body_end)
         if stop < body_end:  # whole lines only: extend to the next newline
             stop = mapped.find(b"\n", stop - 1) + 1
         ahead = stop - stop % mmap.PAGESIZE
         with suppress(OSError, ValueError):
-            mapped.madvise(mmap.MADV_WILLNEED, ahead, min(_RELEASE_BYTES, size - ahead))
+            mapped.madvise(mmap.MADV_WILLNEED, ahead, min(step, size - ahead))
         yield buf, start, stop, size
         keep = stop - stop % mmap.PAGESIZE
         if keep > released:
