@@ -12,7 +12,8 @@ kernels loaded; the best of ``--repeat`` runs), on the same files, in the same r
 - ``iter_points``: an ASCII scan (``--points`` lines of the street scene) streamed
   through :func:`semantic3d.io.iter_ascii_points`; peer: ``pyarrow.csv.read_csv`` with
   ``pyarrow.set_cpu_count(N)`` (its block reader, every block on its own thread);
-- ``read_labels``: the scan's ``.labels``; peer: ``pyarrow.csv.read_csv`` of the same file;
+- ``read_labels``: the scan's ``.labels`` 8 times over (one file); peer:
+  ``pyarrow.csv.read_csv`` of the same file;
 - ``simulate``: :func:`semantic3d.datasets.simulator.simulate` of that scan (text written);
 - ``predict``: the covariance baseline on that one scan, tiled (``predict_scan``, labels
   and run record written), with the model trained below;
@@ -21,7 +22,8 @@ kernels loaded; the best of ``--repeat`` runs), on the same files, in the same r
 - ``evaluate``: :func:`semantic3d.evaluation.evaluate_submission` of 8 scans (links to the
   scan's labels: ground truth and a prediction of it), points evaluated per second.
 
-Each row gives the rate (items per second, wall clock), CPU seconds, the mean number of
+Each row gives the rate (items per second, wall clock), CPU seconds (and their ratio to
+the peer's, which a loaded machine disturbs less than wall time), the mean number of
 the process's threads running or ready to run while it worked (sampled every 2 ms: a
 load-independent view of how parallel it was) and the peer's rate at the same count. Per
 path, the Amdahl serial fraction ``s`` is fitted to the speed-ups over 1 thread (least
@@ -138,7 +140,7 @@ def child(job: dict[str, Any]) -> dict[str, Any]:
     elif path == "read_labels":
         from semantic3d.io import read_labels
 
-        labels = scan.with_suffix(".labels")
+        labels = Path(job["labels"])  # the scan's labels, N_EVALUATED_SCANS times over
 
         def run() -> int:
             return int(read_labels(labels).size)
@@ -271,6 +273,11 @@ def _prepare(args: argparse.Namespace, work: Path) -> dict[str, Any]:
             made.labels_path.rename(training / f"{scene}.labels")
     model = train_covariance_model(find_labelled_scans(training), config=CovarianceConfig())
     save_model(model, work / "model.s3dm")
+    labels = work / "labels" / "many.labels"
+    labels.parent.mkdir()
+    with labels.open("wb") as stream:
+        for _ in range(N_EVALUATED_SCANS):
+            stream.write(scan.labels_path.read_bytes())
     for folder in ("truth", "submission"):
         (work / folder).mkdir()
         for number in range(N_EVALUATED_SCANS):
@@ -282,6 +289,7 @@ def _prepare(args: argparse.Namespace, work: Path) -> dict[str, Any]:
         "model": str(work / "model.s3dm"),
         "points": args.points,
         "scan_points": scan.n_points,
+        "labels": str(labels),
         "work": str(work),
     }
 
@@ -318,7 +326,7 @@ def main() -> None:
         shared = _prepare(args, work)
         header = (
             f"{'path':<12} {'thr':>3} {'M items/s':>10} {'wall s':>8} {'CPU s':>8} "
-            f"{'running':>7} {'peer M/s':>9} {'x peer':>7} {'load':>5}"
+            f"{'running':>7} {'peer M/s':>9} {'x peer':>7} {'CPU/peer':>8} {'load':>5}"
         )
         print(header)
         for path in args.paths:
@@ -351,6 +359,7 @@ def main() -> None:
                     f"{ours['cpu_s']:>8.2f} {mean:>7.2f} "
                     f"{'' if peer_rate is None else f'{peer_rate / 1e6:9.3f}':>9} "
                     f"{'' if peer_rate is None else f'{rate / peer_rate:7.2f}':>7} "
+                    f"{'' if not peer else f'{ours['cpu_s'] / peer['cpu_s']:8.2f}':>8} "
                     f"{ours['load']:>5.2f}",
                     flush=True,
                 )

@@ -199,8 +199,8 @@ def map_in_threads(
     more than ``n_threads`` threads together.
     The first exception raised by a task is raised here (the earliest in input order when
     ``ordered``); tasks not started are cancelled and running ones are waited for, also
-    when the caller stops iterating. With one thread, or one item, everything runs in the
-    calling thread (same results).
+    when the caller stops iterating. With one thread everything runs in the calling thread
+    (same results).
     """
     n_threads = thread_budget() if n_threads is None else max(1, int(n_threads))
     iterator = iter(items)
@@ -212,9 +212,9 @@ def map_in_threads(
     limit = max(n_threads, 2 * n_threads if max_pending is None else int(max_pending))
     tokens = _Tokens(n_threads)
 
-    def run(item: T) -> R:
+    def run(item: T, ticket: int) -> R:
         count = _task_threads(numba_threads_per_task, item, n_threads)
-        with tokens.held(count), numba_threads(count):
+        with tokens.held(count, ticket), numba_threads(count):
             return function(item)
 
     pool = ThreadPoolExecutor(max_workers=n_threads, thread_name_prefix=name)
@@ -228,7 +228,7 @@ def map_in_threads(
                 except StopIteration:
                     exhausted = True
                     break
-                pending.append(pool.submit(run, item))
+                pending.append(pool.submit(run, item, tokens.ticket()))
             if not pending:
                 return
             if ordered:
@@ -241,21 +241,41 @@ def map_in_threads(
     finally:
         for future in pending:
             future.cancel()
+        tokens.close()
         pool.shutdown(wait=True)
 
 
 class _Tokens:
-    """``n`` threads' worth of tokens; a task holds as many as it runs threads."""
+    """``n`` threads' worth of tokens; a task holds as many as it runs threads. Tasks take
+    them in the order they were submitted (a large task is not starved by small ones)."""
 
     def __init__(self, n: int) -> None:
         self.free = n
+        self.turn = 0
+        self.tickets = 0
+        self.open = True
         self.condition = threading.Condition()
 
-    @contextmanager
-    def held(self, count: int) -> Iterator[None]:
+    def close(self) -> None:
+        """Let waiting tasks run at once (tasks cancelled before them never take a turn)."""
         with self.condition:
-            self.condition.wait_for(lambda: self.free >= count)
+            self.open = False
+            self.condition.notify_all()
+
+    def ticket(self) -> int:
+        """The next task's place in line (taken when it is submitted)."""
+        self.tickets += 1
+        return self.tickets - 1
+
+    @contextmanager
+    def held(self, count: int, ticket: int) -> Iterator[None]:
+        with self.condition:
+            self.condition.wait_for(
+                lambda: not self.open or (self.turn == ticket and self.free >= count)
+            )
             self.free -= count
+            self.turn += 1
+            self.condition.notify_all()
         try:
             yield
         finally:
