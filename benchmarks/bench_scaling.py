@@ -341,6 +341,7 @@ def main() -> None:
                 mean = sum(k * v for k, v in samples.items()) / max(1, sum(samples.values()))
                 peer = result.get("peer")
                 peer_rate = peer["items"] / peer["wall_s"] if peer else None
+                cpu_ratio = ours["cpu_s"] / peer["cpu_s"] if peer and peer["cpu_s"] else None
                 row = {
                     "path": path,
                     "threads": n,
@@ -359,7 +360,7 @@ def main() -> None:
                     f"{ours['cpu_s']:>8.2f} {mean:>7.2f} "
                     f"{'' if peer_rate is None else f'{peer_rate / 1e6:9.3f}':>9} "
                     f"{'' if peer_rate is None else f'{rate / peer_rate:7.2f}':>7} "
-                    f"{'' if not peer else f'{ours['cpu_s'] / peer['cpu_s']:8.2f}':>8} "
+                    f"{'' if cpu_ratio is None else f'{cpu_ratio:8.2f}':>8} "
                     f"{ours['load']:>5.2f}",
                     flush=True,
                 )
