@@ -14,13 +14,13 @@ every row its class probabilities:
 
 from __future__ import annotations
 
-import itertools
 from collections.abc import Sequence
 
 import numpy as np
 from numpy.typing import NDArray
 
 from semantic3d.core.errors import ConfigError, ShapeError
+from semantic3d.core.threads import map_in_threads
 
 __all__ = [
     "alpha_expansion",
@@ -276,7 +276,8 @@ def label_rows_by_group(
 ) -> NDArray[np.int64]:
     """:func:`label_rows` run separately on every group of rows (``row_group``, e.g. the
     tile of each row): no edge joins two groups, so a scan labelled whole gives the same
-    labels as the same scan labelled tile by tile."""
+    labels as the same scan labelled tile by tile. Groups are labelled on the thread
+    budget's threads at once (each group's labels are those it gets alone)."""
     proba = np.asarray(proba)
     n = proba.shape[0]
     if row_group.shape != (n,):
@@ -310,19 +311,23 @@ def label_rows_by_group(
         local = np.empty(n, np.int64)
         local[order] = np.arange(n) - np.repeat(bounds[:-1], np.diff(bounds))
         unary = unary_costs(proba)
-    for number, (start, stop) in enumerate(itertools.pairwise(bounds)):
-        rows = order[start:stop]  # ascending: the group's rows in their own order
+
+    def label_group(number: int) -> NDArray[np.int64]:
+        rows = order[bounds[number] : bounds[number + 1]]  # ascending: the group's order
         if edges is None:
-            result[rows] = label_rows(
+            return label_rows(
                 proba[rows],
                 None if row_xyz is None else row_xyz[rows],
                 potts_weight=potts_weight,
                 n_neighbours=n_neighbours,
                 max_sweeps=max_sweeps,
             )
-        else:
-            group_edges = local[edges[edge_bounds[number] : edge_bounds[number + 1]]]
-            result[rows] = alpha_expansion(
-                unary[rows], group_edges, weight=potts_weight, max_sweeps=max_sweeps
-            )
+        group_edges = local[edges[edge_bounds[number] : edge_bounds[number + 1]]]
+        return alpha_expansion(unary[rows], group_edges, weight=potts_weight, max_sweeps=max_sweeps)
+
+    # groups cut at the same time (the cuts release the GIL); each group's labels alone
+    for number, labels in enumerate(
+        map_in_threads(label_group, range(groups.size), name="s3d-graph-cut")
+    ):
+        result[order[bounds[number] : bounds[number + 1]]] = labels
     return result
