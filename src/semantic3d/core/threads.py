@@ -19,6 +19,7 @@ work. Nothing here imports numba: it is configured only when something else load
 
 from __future__ import annotations
 
+import importlib
 import os
 import queue
 import sys
@@ -32,6 +33,7 @@ from typing import TypeVar
 __all__ = [
     "ENVIRONMENT_VARIABLES",
     "available_cores",
+    "concurrent_kernels_supported",
     "current_thread_limit",
     "iter_ahead",
     "map_in_threads",
@@ -204,6 +206,11 @@ def map_in_threads(
     """
     n_threads = thread_budget() if n_threads is None else max(1, int(n_threads))
     iterator = iter(items)
+    if n_threads > 1 and not concurrent_kernels_supported():
+        for item in iterator:  # one task at a time, each with every thread
+            with numba_threads(n_threads):
+                yield function(item)
+        return
     if n_threads == 1:
         for item in iterator:
             with numba_threads(_task_threads(numba_threads_per_task, item, 1)):
@@ -243,6 +250,32 @@ def map_in_threads(
             future.cancel()
         tokens.close()
         pool.shutdown(wait=True)
+
+
+_LAYER_MODULES = ("numba.np.ufunc.tbbpool", "numba.np.ufunc.omppool")
+
+
+def concurrent_kernels_supported() -> bool:
+    """Whether numba's parallel kernels may be launched from several threads at once: its
+    ``tbb`` and ``omp`` threading layers allow it, its ``workqueue`` fallback (no TBB, no
+    OpenMP runtime) aborts the process. Without it the thread maps run one task at a
+    time (with every thread). True while numba is not loaded (nothing to launch)."""
+    numba = sys.modules.get("numba")
+    if numba is None:
+        return True
+    try:
+        return str(numba.threading_layer()) != "workqueue"
+    except ValueError:  # no parallel kernel launched yet: the layer numba will choose
+        layer = str(numba.config.THREADING_LAYER)
+        if layer == "workqueue":
+            return False
+        for module in _LAYER_MODULES:
+            try:
+                importlib.import_module(module)
+            except ImportError:
+                continue
+            return True
+        return False
 
 
 class _Tokens:
@@ -310,7 +343,7 @@ def iter_ahead(
     stop = threading.Event()
 
     budget = thread_budget()  # the caller's (a task's share inside a task)
-    if budget == 1:  # nothing to overlap with: one thread does both, in turn
+    if budget == 1 or not concurrent_kernels_supported():  # one thread does both, in turn
         yield from items
         return
     consumer_threads = max(1, min(int(consumer_threads), budget - 1))
