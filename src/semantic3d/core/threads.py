@@ -38,6 +38,7 @@ __all__ = [
     "iter_ahead",
     "map_in_threads",
     "numba_threads",
+    "serial_section",
     "set_thread_limit",
     "thread_budget",
     "thread_limit",
@@ -96,7 +97,8 @@ def set_thread_limit(n_threads: int | None) -> int:
     Applies at once where it can: numba in the calling thread, the BLAS / OpenMP pools of
     loaded libraries (through threadpoolctl when installed), and the environment of
     libraries loaded later (``NUMBA_NUM_THREADS`` only while numba is not loaded, so that
-    its pool is sized for the limit). Returns the budget now in force.
+    its pool is sized for the limit; numba then keeps that pool, and the variable, for the
+    life of the process). Returns the budget now in force.
 
     Raises:
         ValueError: ``n_threads`` is below 1.
@@ -121,11 +123,21 @@ def set_thread_limit(n_threads: int | None) -> int:
 
 def _restore_environment() -> None:
     for name, value in _saved_environment.items():
+        if name == "NUMBA_NUM_THREADS" and "numba" in sys.modules:
+            # numba sized its pool from it and rereads it on every compilation: another
+            # value now would stop it compiling; its pool cannot grow anyway
+            continue
         if value is None:
             os.environ.pop(name, None)
         else:
             os.environ[name] = value
     _saved_environment.clear()
+
+
+def _set_numba_threads_here(n_threads: int) -> None:
+    numba = sys.modules.get("numba")
+    if numba is not None and hasattr(numba, "set_num_threads"):
+        numba.set_num_threads(max(1, min(n_threads, int(numba.config.NUMBA_NUM_THREADS))))
 
 
 def _set_numba_threads(n_threads: int) -> None:
@@ -302,6 +314,8 @@ class _Tokens:
 
     @contextmanager
     def held(self, count: int, ticket: int) -> Iterator[None]:
+        """Hold ``count`` tokens for the block (the task's thread may give some back for
+        a while: :func:`serial_section`)."""
         with self.condition:
             self.condition.wait_for(
                 lambda: not self.open or (self.turn == ticket and self.free >= count)
@@ -309,12 +323,50 @@ class _Tokens:
             self.free -= count
             self.turn += 1
             self.condition.notify_all()
+        _task.held = [self, count]
         try:
             yield
         finally:
-            with self.condition:
-                self.free += count
-                self.condition.notify_all()
+            held = _task.held
+            _task.held = None
+            self.give_back(held[1])
+
+    def give_back(self, count: int) -> None:
+        with self.condition:
+            self.free += count
+            self.condition.notify_all()
+
+    def take_up_to(self, count: int) -> int:
+        """Take at most ``count`` free tokens without waiting; return how many."""
+        with self.condition:
+            taken = max(0, min(count, self.free))
+            self.free -= taken
+            return taken
+
+
+@contextmanager
+def serial_section() -> Iterator[None]:
+    """A block of a thread-map task that runs on one thread (a graph cut, Python steps).
+
+    The task's other threads go back to the map for the block, so another task can use
+    them, and are taken again afterwards as far as they are free (the task goes on with
+    fewer kernel threads otherwise: never more threads than the map's at once). Outside a
+    map's task nothing changes. Results do not depend on it.
+    """
+    held = getattr(_task, "held", None)
+    if held is None or held[1] <= 1:
+        yield
+        return
+    tokens, count = held
+    tokens.give_back(count - 1)
+    held[1] = 1
+    try:
+        with numba_threads(1):
+            yield
+    finally:
+        held[1] = 1 + tokens.take_up_to(count - 1)
+        _set_numba_threads_here(held[1])
+        _task.budget = held[1]
 
 
 def _task_threads(per_task: Callable[[T], int] | int, item: T, ceiling: int) -> int:
@@ -327,6 +379,7 @@ def iter_ahead(
     *,
     depth: int = 1,
     consumer_threads: int = 1,
+    min_threads: int = 2,
     name: str = "semantic3d-ahead",
 ) -> Iterator[T]:
     """The items of ``items``, produced on a thread of their own up to ``depth`` ahead.
@@ -334,8 +387,10 @@ def iter_ahead(
     The producer's work (parsing a file, casting rays) then overlaps the consumer's
     (binning, formatting, writing); the items and their order are those of ``items``. The
     budget is split: the consumer's numba kernels run on ``consumer_threads`` threads
-    while it handles an item, the producer's on the rest. With a budget of one thread
-    nothing overlaps (the items are produced in the caller's thread). An exception of the
+    while it handles an item, the producer's on the rest. With a budget below
+    ``min_threads`` nothing overlaps (the items are produced in the caller's thread, each
+    side on the whole budget in turn: for a producer far heavier than its consumer, two
+    threads are better spent both on the producer). An exception of the
     producer is raised here when its turn comes; when the consumer stops early (or
     fails), the producer stops after its current item.
     """
@@ -343,7 +398,7 @@ def iter_ahead(
     stop = threading.Event()
 
     budget = thread_budget()  # the caller's (a task's share inside a task)
-    if budget == 1 or not concurrent_kernels_supported():  # one thread does both, in turn
+    if budget < max(2, min_threads) or not concurrent_kernels_supported():  # in turn
         yield from items
         return
     consumer_threads = max(1, min(int(consumer_threads), budget - 1))

@@ -24,6 +24,7 @@ from semantic3d.baselines.covariance.context import (
 from semantic3d.baselines.covariance.forest import CompiledClassifier
 from semantic3d.core.errors import ShapeError
 from semantic3d.core.pointcloud import PointCloud
+from semantic3d.core.threads import serial_section
 from semantic3d.features.multiscale import FeatureTable
 from semantic3d.features.pyramid import grid_origin
 from semantic3d.spatial.grid import TileGrid
@@ -234,16 +235,17 @@ class CovarianceModel:
             logger.warning("context step skipped: no row positions or neighbours were given")
         if not graph or not context.enabled:
             columns = np.argmax(proba, axis=1)
-        else:
-            columns = label_rows_by_group(
-                proba,
-                None if row_xyz is None else np.asarray(row_xyz, dtype=np.float64),
-                np.zeros(proba.shape[0], np.int64) if row_tile is None else row_tile,
-                potts_weight=context.potts_weight,
-                n_neighbours=context.n_neighbours,
-                max_sweeps=context.max_sweeps,
-                neighbours=neighbours,
-            )
+        else:  # the cut of one group is serial: in a tile's task, lend its other threads
+            with serial_section():
+                columns = label_rows_by_group(
+                    proba,
+                    None if row_xyz is None else np.asarray(row_xyz, dtype=np.float64),
+                    np.zeros(proba.shape[0], np.int64) if row_tile is None else row_tile,
+                    potts_weight=context.potts_weight,
+                    n_neighbours=context.n_neighbours,
+                    max_sweeps=context.max_sweeps,
+                    neighbours=neighbours,
+                )
         labels: NDArray[np.uint8] = classes[columns]
         return labels
 

@@ -267,8 +267,10 @@ def _write_station(
         iter_sweep_blocks(
             compiled, station, plan=plan, seed=seed, scanner=scanner, chunk_size=chunk_size
         ),
-        # formatting and writing cost about a sixth of casting and shading
+        # formatting and writing cost about a sixth of casting and shading: overlapping
+        # them pays from 6 threads on, the writer taking a sixth of them
         consumer_threads=max(1, round(thread_budget() / 6)),
+        min_threads=6,
         name="semantic3d-sweep",
     )
     with open_ascii_writer(points_path, labels_path=labels_path) as writer:
