@@ -3,7 +3,7 @@
 ``python tests/core/census.py '[["simulate", ...], ...]'`` runs each argument list through
 the ``semantic3d`` app and prints, as JSON, how many of this process's threads were
 running or ready to run (state ``R`` in ``/proc/self/task``) at each sample, taken every
-2 ms by a thread of its own (not counted). Idle OpenMP threads must not spin for the count
+2 ms by a thread of its own (not counted, nor the progress bars' refresh threads). Idle OpenMP threads must not spin for the count
 to mean "computing": run it with ``OMP_WAIT_POLICY=passive``.
 """
 
@@ -16,10 +16,20 @@ import time
 from pathlib import Path
 
 
+def _not_computing() -> set[int]:
+    """Native ids of the progress bars' refresh threads (drawing, not computing)."""
+    return {
+        thread.native_id
+        for thread in threading.enumerate()
+        if type(thread).__name__ == "_RefreshThread" and thread.native_id is not None
+    }
+
+
 def _running(me: int) -> int:
     count = 0
+    skip = _not_computing() | {me}
     for task in Path("/proc/self/task").iterdir():
-        if int(task.name) == me:
+        if int(task.name) in skip:
             continue
         try:
             data = (task / "stat").read_bytes()
