@@ -250,8 +250,7 @@ def evaluate_submission(
         chunk_size: label pairs accumulated at a time.
         map_scans: scores the scans elsewhere (:func:`evaluate_submitted_scan` per scan,
             e.g. on a Dask cluster); default: on threads of this process, as many scans
-            at once as the thread budget holds pairs of threads (one scan at a time on
-            fewer than 4); same result.
+            at once as the thread budget has threads; same result.
 
     Raises:
         SubmissionError: the submission is invalid; ``.problems`` lists every problem.
@@ -264,9 +263,11 @@ def evaluate_submission(
     per_scan: list[ScanResult] = []
     gt_bytes = sum(s.ground_truth.stat().st_size for s in challenge.scans if s.ground_truth)
     tracker = _Progress(progress, gt_bytes)
-    if map_scans is None and len(challenge.scans) > 1 and thread_budget() >= 2 * _SCAN_THREADS:
-        # scans at the same time, each on its own threads (same result, merged in order)
-        map_scans = partial(_map_in_threads, n_threads=thread_budget() // _SCAN_THREADS)
+    if map_scans is None and len(challenge.scans) > 1 and thread_budget() > 1:
+        # scans at the same time, each on its share of the threads (merged in order: the
+        # same result); a scan with two threads parses its truth beside its prediction
+        at_once = min(len(challenge.scans), thread_budget())
+        map_scans = partial(_map_in_threads, n_threads=at_once)
     if map_scans is not None:
         return _evaluate_mapped(
             submission,
@@ -310,15 +311,12 @@ def evaluate_submission(
     return _result(submission, challenge, protocol, method, problems, total, per_scan)
 
 
-_SCAN_THREADS = 2
-"""Threads one scan keeps busy: its ground truth is parsed beside its prediction."""
-
-
 def _map_in_threads(
     function: Callable[[int], ScanEvaluation], items: Sequence[int], *, n_threads: int
 ) -> Iterator[ScanEvaluation]:
+    share = max(1, thread_budget() // n_threads)
     return map_in_threads(
-        function, items, n_threads=n_threads, numba_threads_per_task=1, name="s3d-scan"
+        function, items, n_threads=n_threads * share, numba_threads_per_task=share, name="s3d-scan"
     )
 
 
