@@ -36,6 +36,7 @@ from semantic3d.cli.console import (
     plural,
     progress_bar,
     refuse_existing,
+    threads_option,
 )
 
 if TYPE_CHECKING:
@@ -93,6 +94,7 @@ def train(
     ),
     scheduler: str | None = scheduler_option(),
     workers: int | None = workers_option(),
+    threads: int | None = threads_option(),
 ) -> None:
     """Train on labelled scans (class-balanced sample) and save the model.
 
@@ -163,11 +165,12 @@ def predict(
         "--parallel-scans",
         min=1,
         help="Scans labelled at a time on threads of this process (same labels; memory of "
-        "that many scans). Default 2 for a folder, 1 on a Dask cluster or where numba "
-        "has no thread-safe threading layer (TBB or OpenMP).",
+        "that many scans). Default for a folder: one per 4 threads, at least 2; 1 on a Dask "
+        "cluster or where numba has no thread-safe threading layer (TBB or OpenMP).",
     ),
     scheduler: str | None = scheduler_option(),
     workers: int | None = workers_option(),
+    threads: int | None = threads_option(),
 ) -> None:
     """Label scans with a trained model: one SCAN, or every scan of --data.
 
@@ -202,7 +205,7 @@ def _predict(
     cluster_options: tuple[str | None, int | None] = (None, None),
     parallel_scans: int | None = None,
 ) -> None:
-    from semantic3d.baselines.common.prediction import parallel_scans_limit
+    from semantic3d.baselines.common.prediction import parallel_scans_limit, scans_at_once
     from semantic3d.baselines.common.submission import (
         is_zip_output,
         refuse_unsafe_outputs,
@@ -213,8 +216,8 @@ def _predict(
     refuse_unsafe_outputs(target, scans, overwrite=overwrite)
     model = load_model(model_path)
     on_cluster = cluster_options != (None, None)
-    if parallel_scans is None:  # 2 where it is safe and helps
-        parallel_scans = 2 if len(scans) > 1 and not on_cluster else 1
+    if parallel_scans is None:  # where it is safe and helps: a scan per 4 threads, 2 or more
+        parallel_scans = scans_at_once(len(scans)) if not on_cluster else 1
     elif parallel_scans > 1 and (on_cluster or parallel_scans_limit(model) == 1):
         why = (
             "the cluster labels each scan's tiles in parallel"
@@ -261,6 +264,7 @@ def cv(
     ),
     out: Path | None = typer.Option(None, "--out", help="Write the scores as JSON here."),
     overwrite: bool = typer.Option(False, "--overwrite", help=OVERWRITE_HELP),
+    threads: int | None = threads_option(),
 ) -> None:
     """Grid search of forest parameters, cross-validated with folds grouped by scan."""
     with guarded():

@@ -40,6 +40,7 @@ from semantic3d.cli.console import (
     plural,
     progress_bar,
     refuse_existing,
+    threads_option,
 )
 
 if TYPE_CHECKING:
@@ -117,6 +118,7 @@ def train(
     ),
     workdir: Path | None = typer.Option(None, "--workdir", help="Scratch folder for tiles."),
     overwrite: bool = typer.Option(False, "--overwrite", help=OVERWRITE_HELP),
+    threads: int | None = threads_option(),
 ) -> None:
     """Train DeepNet on labelled scans (class-balanced batches) and save the model.
 
@@ -215,6 +217,7 @@ def predict(
     overwrite: bool = typer.Option(False, "--overwrite", help=OVERWRITE_HELP),
     scheduler: str | None = scheduler_option(),
     workers: int | None = workers_option(),
+    threads: int | None = threads_option(),
 ) -> None:
     """Label scans with a trained model: one SCAN, or every scan of --data.
 
@@ -284,6 +287,7 @@ def cv(
     workdir: Path | None = typer.Option(None, "--workdir", help="Scratch folder for tiles."),
     out: Path | None = typer.Option(None, "--out", help="Write the scores as JSON here."),
     overwrite: bool = typer.Option(False, "--overwrite", help=OVERWRITE_HELP),
+    threads: int | None = threads_option(),
 ) -> None:
     """Cross-validate: train on all folds but one, label the held-out scans, score them."""
     with guarded():

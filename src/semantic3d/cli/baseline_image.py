@@ -32,6 +32,7 @@ from semantic3d.cli.console import (
     plural,
     progress_bar,
     refuse_existing,
+    threads_option,
 )
 
 image_app = typer.Typer(
@@ -64,6 +65,7 @@ def train(
     preset: str | None = typer.Option(None, "--preset", help="paper or small (without --config)."),
     seed: int | None = typer.Option(None, "--seed", help="Override the configuration's seed."),
     overwrite: bool = typer.Option(False, "--overwrite", help=OVERWRITE_HELP),
+    threads: int | None = threads_option(),
 ) -> None:
     """Render the labelled scans' cube maps from their stations and train a segmenter."""
     with guarded():
@@ -119,6 +121,7 @@ def predict(
     ),
     workdir: Path | None = typer.Option(None, "--workdir", help="Scratch folder."),
     overwrite: bool = typer.Option(False, "--overwrite", help=OVERWRITE_HELP),
+    threads: int | None = threads_option(),
 ) -> None:
     """Label scans with a trained model: one SCAN, or every scan of --data.
 

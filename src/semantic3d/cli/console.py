@@ -13,7 +13,7 @@ import sys
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import typer
 
@@ -78,6 +78,29 @@ EXTRA_BY_MODULE = {
         "server",
     ),
 }
+
+
+THREADS_HELP = (
+    "Threads to compute with (default: every core, or NUMBA_NUM_THREADS / OMP_NUM_THREADS "
+    "when set). Results are the same for any number."
+)
+
+
+def threads_option() -> Any:
+    """The ``--threads N`` option: caps the command's compute threads while it runs
+    (:func:`semantic3d.core.threads.set_thread_limit`, applied as the option is parsed, so
+    before the command imports numba; the previous cap is back when the command ends)."""
+    return typer.Option(None, "--threads", min=1, help=THREADS_HELP, callback=_use_threads)
+
+
+def _use_threads(context: typer.Context, value: int | None) -> int | None:
+    if value is not None:
+        from semantic3d.core import threads
+
+        previous = threads.current_thread_limit()
+        threads.set_thread_limit(value)
+        context.call_on_close(lambda: threads.set_thread_limit(previous))
+    return value
 
 
 def print_error(message: str) -> None:

@@ -14,7 +14,7 @@ import typer
 
 from semantic3d.cli import console as ui
 from semantic3d.cli.cluster import open_cluster, scheduler_option, workers_option
-from semantic3d.cli.console import fail, guarded, progress_bar, refuse_existing
+from semantic3d.cli.console import fail, guarded, progress_bar, refuse_existing, threads_option
 
 if TYPE_CHECKING:
     import numpy as np
@@ -80,6 +80,7 @@ def convert(
     overwrite: bool = typer.Option(False, "--overwrite", help=_OVERWRITE_HELP),
     scheduler: str | None = scheduler_option(),
     workers: int | None = workers_option(),
+    threads: int | None = threads_option(),
 ) -> None:
     """Convert point files between formats, streaming (constant memory).
 
@@ -236,6 +237,7 @@ def info(
     chunk_size: int = typer.Option(
         DEFAULT_CHUNK_SIZE, "--chunk-size", min=1, help="Points per streamed chunk."
     ),
+    threads: int | None = threads_option(),
 ) -> None:
     """Show a point file's count, bounds, columns and class histogram (streaming)."""
     with guarded():

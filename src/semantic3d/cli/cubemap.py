@@ -12,7 +12,7 @@ from pathlib import Path
 import typer
 
 from semantic3d.cli import console as ui
-from semantic3d.cli.console import escape, guarded, progress_bar, refuse_existing
+from semantic3d.cli.console import escape, guarded, progress_bar, refuse_existing, threads_option
 
 
 def cubemap_command(
@@ -29,6 +29,7 @@ def cubemap_command(
         1, "--splat-radius", help="Pixels each point also covers around its own (0..16)."
     ),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace faces already in OUT."),
+    threads: int | None = threads_option(),
 ) -> None:
     """Render a scan's colour, label and index cube faces from its station (PNG + .npy)."""
     with guarded():

@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING
 import typer
 
 from semantic3d.cli import console as ui
-from semantic3d.cli.console import guarded, progress_bar
+from semantic3d.cli.console import guarded, progress_bar, threads_option
 
 if TYPE_CHECKING:
     from semantic3d.evaluation.result import EvaluationResult, MethodInfo
@@ -40,6 +40,7 @@ def demo(
         False, "--serve/--no-serve", help="Start the benchmark server at the end."
     ),
     port: int = typer.Option(8000, help="Port of the benchmark server."),
+    threads: int | None = threads_option(),
 ) -> None:
     """Run the main job end to end on embedded defaults."""
     started = time.perf_counter()

@@ -25,6 +25,7 @@ from semantic3d.cli.console import (
     plural,
     progress_bar,
     refuse_existing,
+    threads_option,
     write_atomically,
 )
 
@@ -94,6 +95,7 @@ def validate(
     gt: Path | None = typer.Option(
         None, "--gt", file_okay=False, help="Folder of ground-truth .labels files."
     ),
+    threads: int | None = threads_option(),
 ) -> None:
     """Check a submission: names, archive safety, values 1..8, line counts (all problems)."""
     with guarded():
@@ -175,6 +177,7 @@ def evaluate(
     runtime_alias: float | None = typer.Option(None, "--runtime", min=0, hidden=True),
     scheduler: str | None = scheduler_option(),
     workers: int | None = workers_option(),
+    threads: int | None = threads_option(),
 ) -> None:
     """Evaluate a submission against ground truth: IoU per class, mIoU, OA.
 
@@ -334,6 +337,7 @@ def agreement(
     workdir: Path | None = typer.Option(
         None, "--workdir", help="Scratch folder for the tile stores (shared with the workers)."
     ),
+    threads: int | None = threads_option(),
 ) -> None:
     """Label agreement of two overlapping scans: transfer labels A→B and B→A, score them."""
     if not (max_distance > 0 and tile_size > 0):

@@ -13,7 +13,7 @@ import typer
 
 from semantic3d.cli import console as ui
 from semantic3d.cli.cluster import open_cluster, scheduler_option, workers_option
-from semantic3d.cli.console import guarded, progress_bar, refuse_existing
+from semantic3d.cli.console import guarded, progress_bar, refuse_existing, threads_option
 
 #: The simulator's scene names and station limit, repeated so that building the app does
 #: not import the simulator (a test keeps them equal to ``SceneName`` / ``MAX_STATIONS``).
@@ -45,6 +45,7 @@ def simulate_command(
     ),
     scheduler: str | None = scheduler_option(),
     workers: int | None = workers_option(),
+    threads: int | None = threads_option(),
 ) -> None:
     """Simulate static laser scans: NAME_stationK.txt + .labels per station and NAME.json.
 

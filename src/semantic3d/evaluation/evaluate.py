@@ -22,6 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from semantic3d.core.errors import DataFormatError, SubmissionError
+from semantic3d.core.threads import map_in_threads, thread_budget
 from semantic3d.evaluation.challenge import Challenge, ChallengeScan
 from semantic3d.evaluation.contents import (
     READ_FAILURES,
@@ -78,6 +79,36 @@ def _reading_prediction() -> Iterator[None]:
         raise _PredictionUnreadableError(exc) from exc
 
 
+class _Ahead:
+    """A one-thread pool, or (``threaded`` False) one that runs each call at once."""
+
+    def __init__(self, threaded: bool) -> None:
+        self.pool = (
+            ThreadPoolExecutor(max_workers=1, thread_name_prefix="semantic3d-truth")
+            if threaded
+            else None
+        )
+
+    def __enter__(self) -> _Ahead:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self.pool is not None:
+            self.pool.shutdown(wait=True)
+
+    def submit(
+        self, function: Callable[[int], NDArray[np.uint8]], argument: int
+    ) -> Future[NDArray[np.uint8]]:
+        if self.pool is not None:
+            return self.pool.submit(function, argument)
+        done: Future[NDArray[np.uint8]] = Future()
+        try:
+            done.set_result(function(argument))
+        except BaseException as exc:
+            done.set_exception(exc)
+        return done
+
+
 def _stream_pair(
     truth: LabelStream,
     pred: LabelStream,
@@ -89,9 +120,10 @@ def _stream_pair(
     """Accumulate (truth, prediction) chunks, then parse what is left of either stream.
 
     The ground truth is parsed one chunk ahead in a worker thread (the kernels and file
-    reads release the GIL) while this thread inflates and parses the prediction.
+    reads release the GIL) while this thread inflates and parses the prediction; with a
+    thread budget of one, both in this thread.
     """
-    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="semantic3d-truth") as pool:
+    with _Ahead(thread_budget() > 1) as pool:
         pending: Future[NDArray[np.uint8]] | None = pool.submit(truth.read, chunk_size)
         while pending is not None:
             y_true = pending.result()
@@ -217,7 +249,8 @@ def evaluate_submission(
         progress: called as ``progress(done_bytes, total_bytes)`` of ground truth read.
         chunk_size: label pairs accumulated at a time.
         map_scans: scores the scans elsewhere (:func:`evaluate_submitted_scan` per scan,
-            e.g. on a Dask cluster) instead of one after another here; same result.
+            e.g. on a Dask cluster); default: on threads of this process, as many scans
+            at once as the thread budget has threads; same result.
 
     Raises:
         SubmissionError: the submission is invalid; ``.problems`` lists every problem.
@@ -230,6 +263,11 @@ def evaluate_submission(
     per_scan: list[ScanResult] = []
     gt_bytes = sum(s.ground_truth.stat().st_size for s in challenge.scans if s.ground_truth)
     tracker = _Progress(progress, gt_bytes)
+    if map_scans is None and len(challenge.scans) > 1 and thread_budget() > 1:
+        # scans at the same time, each on its share of the threads (merged in order: the
+        # same result); a scan with two threads parses its truth beside its prediction
+        at_once = min(len(challenge.scans), thread_budget())
+        map_scans = partial(_map_in_threads, n_threads=at_once)
     if map_scans is not None:
         return _evaluate_mapped(
             submission,
@@ -271,6 +309,15 @@ def evaluate_submission(
             tracker.done += gt_path.stat().st_size
             tracker.report()
     return _result(submission, challenge, protocol, method, problems, total, per_scan)
+
+
+def _map_in_threads(
+    function: Callable[[int], ScanEvaluation], items: Sequence[int], *, n_threads: int
+) -> Iterator[ScanEvaluation]:
+    share = max(1, thread_budget() // n_threads)
+    return map_in_threads(
+        function, items, n_threads=n_threads * share, numba_threads_per_task=share, name="s3d-scan"
+    )
 
 
 def _evaluate_mapped(

@@ -2,10 +2,11 @@
 
 A constant, small ``k`` per level (Hackel et al. 2016: k = 10) replaces a radius search:
 the pyramid already sets the scale, and a fixed k keeps the cost per query constant
-however dense the scan. The search is pgeof's nanoflann k-d tree (float32 coordinates
-relative to the grid origin, all cores): measured 1.7-2x faster than
-``scipy.spatial.cKDTree(workers=-1)`` on the pyramid levels of the three shared samples.
-Features are then computed from the float64 points.
+however dense the scan. The search is the package's k-d tree
+(:class:`~semantic3d.spatial.kdtree.KdTree`: float32 coordinates relative to the grid
+origin, nanoflann's distance arithmetic, built and searched on the thread budget's cores
+without the GIL, so tiles of a scan search at the same time). Features are then computed
+from the float64 points.
 
 Canonical order: neighbours are sorted by distance, ties broken by voxel key. The k-d
 tree is asked for one neighbour more than needed; when the k-th and the last returned
@@ -19,14 +20,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
 
 import numba
 import numpy as np
 from numpy.typing import NDArray
 
 from semantic3d.core.errors import ShapeError
-from semantic3d.core.errors import require as _require
+from semantic3d.spatial.kdtree import KdTree
 
 
 @dataclass(frozen=True, slots=True)
@@ -53,7 +53,6 @@ class LevelIndex:
     """
 
     def __init__(self, xyz: NDArray[np.float64], keys: NDArray[np.int64]) -> None:
-        self._pgeof: Any = _require("pgeof", "ml")
         if xyz.ndim != 2 or xyz.shape[1] != 3 or keys.shape != (xyz.shape[0],):
             raise ShapeError(
                 f"xyz/keys: expected (n, 3) and (n,), found {xyz.shape} and {keys.shape}"
@@ -61,6 +60,7 @@ class LevelIndex:
         self.xyz = np.ascontiguousarray(xyz, dtype=np.float64)
         self.keys = np.ascontiguousarray(keys, dtype=np.int64)
         self._xyz32 = self.xyz.astype(np.float32)
+        self._tree: KdTree | None = None
 
     @property
     def n_points(self) -> int:
@@ -78,9 +78,9 @@ class LevelIndex:
         # the level's own points as queries (voxel mode): reuse their float32 copy
         queries32 = self._xyz32 if queries is self.xyz else queries.astype(np.float32)
         k_query = min(k_eff + 1, self.n_points)
-        found, squared = self._pgeof.knn_search(self._xyz32, queries32, k_query)
-        found = found.reshape(-1, k_query)
-        squared = squared.reshape(-1, k_query)
+        if self._tree is None:
+            self._tree = KdTree(self._xyz32)
+        found, squared = self._tree.query(queries32, k=k_query)
         pending = np.flatnonzero(
             _canonicalise(squared, found, self.keys, k_eff, k_query < self.n_points)
         )
@@ -113,20 +113,17 @@ class LevelIndex:
         Asked again with twice the neighbours, among only the indexed points inside a box
         holding each row's ball of its k-th distance: a complete superset of the points
         that can be selected, with the same float32 coordinates (so the same distances),
-        and a k-d tree over a few hundred points instead of the whole level (pgeof
-        rebuilds its tree on every call; the rebuild was most of the re-query's cost).
+        and a k-d tree over a few hundred points instead of the whole level.
         """
         # float32 distances carry ~1e-7 relative error: the 1e-4 margin keeps the box a
         # superset of the ball; a zero k-th distance keeps a positive half-width
         radii = np.sqrt(squared_kth.astype(np.float64)) * (1.0 + 1e-4) + 1e-30
         subset = np.flatnonzero(_points_in_boxes(self._xyz32, queries32, radii))
-        points = self._xyz32[subset]
+        tree = KdTree(self._xyz32[subset])
         keys = self.keys[subset]
         while rows.size:
             k_query = min(2 * k_query, subset.size)
-            more, more_squared = self._pgeof.knn_search(points, queries32, k_query)
-            more = more.reshape(-1, k_query)
-            more_squared = more_squared.reshape(-1, k_query)
+            more, more_squared = tree.query(queries32, k=k_query)
             ambiguous = _canonicalise(more_squared, more, keys, k_eff, k_query < subset.size)
             done = ~ambiguous
             indices[rows[done]] = subset[more[done, :k_eff]]

@@ -1,7 +1,8 @@
 """Features of a whole scan streamed from disk: in memory when small, tile by tile when large.
 
-:func:`iter_scan_features` is the one entry point training and prediction use. Scans up
-to ``max_points_in_memory`` points are described whole by
+:func:`iter_scan_features` is the one entry point training and prediction use
+(:func:`map_scan_features` is the same with the tiles of a large scan described on several
+threads at once). Scans up to ``max_points_in_memory`` points are described whole by
 :func:`~semantic3d.features.multiscale.compute_multiscale_features`; larger ones go
 through :class:`~semantic3d.features.tiling.TiledScan`. Both give the same rows (tested),
 so the switch changes memory and speed, never results.
@@ -9,10 +10,11 @@ so the switch changes memory and speed, never results.
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from itertools import chain
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -21,7 +23,9 @@ from semantic3d.core.errors import ShapeError
 from semantic3d.core.pointcloud import PointCloud
 from semantic3d.features.config import FeatureConfig
 from semantic3d.features.multiscale import FeatureTable, compute_multiscale_features
-from semantic3d.features.tiling import DEFAULT_TILE_SIZE_M, TiledScan
+from semantic3d.features.tiling import DEFAULT_TILE_SIZE_M, TiledScan, TileFeatures
+
+R = TypeVar("R")
 
 
 @dataclass(frozen=True, slots=True)
@@ -52,7 +56,7 @@ def iter_scan_features(
     tile_size_m: float = DEFAULT_TILE_SIZE_M,
     workdir: str | Path | None = None,
 ) -> Iterator[FeatureBlock]:
-    """Feature blocks covering the selected points of a streamed scan.
+    """Feature blocks covering the selected points of a streamed scan (tiles in order).
 
     Args:
         chunks: the scan's point chunks in file order.
@@ -61,6 +65,42 @@ def iter_scan_features(
         max_points_in_memory: above this many points the scan is tiled.
         tile_size_m: tile edge when tiled.
         workdir: where the scratch folder of the tiles is made (removed afterwards).
+    """
+    return map_scan_features(
+        chunks,
+        _same,
+        config=config,
+        select=select,
+        max_points_in_memory=max_points_in_memory,
+        tile_size_m=tile_size_m,
+        workdir=workdir,
+        n_threads=1,
+    )
+
+
+def _same(block: FeatureBlock) -> FeatureBlock:
+    return block
+
+
+def map_scan_features(
+    chunks: Iterable[PointCloud],
+    function: Callable[[FeatureBlock], R],
+    *,
+    config: FeatureConfig,
+    select: ArrayLike | None = None,
+    max_points_in_memory: int = 4_000_000,
+    tile_size_m: float = DEFAULT_TILE_SIZE_M,
+    workdir: str | Path | None = None,
+    n_threads: int | None = None,
+) -> Iterator[R]:
+    """``function(block)`` for every feature block of a streamed scan (those of
+    :func:`iter_scan_features`).
+
+    A tiled scan's tiles are described and passed to ``function`` on ``n_threads`` threads
+    at once (default the thread budget, :mod:`semantic3d.core.threads`; see
+    :meth:`~semantic3d.features.tiling.TiledScan.map_tiles`): results come as tiles finish,
+    in no fixed order (one thread: tiles in order), each the same as alone. ``function``
+    must be safe to call from several threads at once.
     """
     stream = iter(chunks)
     held: list[PointCloud] = []
@@ -73,10 +113,18 @@ def iter_scan_features(
                 chain(held, stream), config=config, tile_size_m=tile_size_m, workdir=workdir
             ) as scan:
                 held.clear()
-                for tile in scan.iter_features(select=select):
-                    yield FeatureBlock(
+
+                def describe(tile: TileFeatures, scan: TiledScan = scan) -> R:
+                    block = FeatureBlock(
                         tile.point_indices, tile.table, tile.labels, scan.n_points, tiled=True
                     )
+                    return function(block)
+
+                if n_threads == 1:
+                    for tile in scan.iter_features(select=select):
+                        yield describe(tile)
+                else:
+                    yield from scan.map_tiles(describe, select=select, n_threads=n_threads)
             return
     if held_points == 0:
         raise ShapeError("cannot compute features of an empty scan")
@@ -91,4 +139,4 @@ def iter_scan_features(
         return
     table = compute_multiscale_features(cloud, config=config, point_indices=indices)
     labels = None if cloud.labels is None else cloud.labels[indices]
-    yield FeatureBlock(indices, table, labels, cloud.n_points, tiled=False)
+    yield function(FeatureBlock(indices, table, labels, cloud.n_points, tiled=False))

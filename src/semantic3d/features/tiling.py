@@ -28,18 +28,21 @@ import math
 import pickle
 import shutil
 import tempfile
+import threading
 from collections import OrderedDict
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from itertools import chain
 from pathlib import Path
 from types import TracebackType
+from typing import TypeVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from semantic3d.core.errors import ShapeError
 from semantic3d.core.pointcloud import PointCloud
+from semantic3d.core.threads import iter_ahead, map_in_threads, thread_budget
 from semantic3d.features.config import ConfigError, FeatureConfig
 from semantic3d.features.multiscale import (
     FeatureTable,
@@ -75,6 +78,7 @@ _SHARED_FILE = "shared.pickle"
 """What :meth:`TiledScan.share` writes in the scratch folder."""
 
 Tile = TileKey
+R = TypeVar("R")
 
 
 @dataclass(frozen=True, slots=True)
@@ -192,6 +196,8 @@ class TiledScan:
         self.cache_bytes = cache_bytes
         self._cache: OrderedDict[Tile, _TilePyramid] = OrderedDict()
         self._cache_bytes = 0
+        self._cache_scale = 1  # tiles computed at once: each keeps its neighbours cached
+        self._lock = threading.Lock()
         try:
             self.store = self._spill(chunks)
             tiles = np.array(self.store.tiles)
@@ -248,7 +254,10 @@ class TiledScan:
             cell_size_m=config.base_voxel_size_m,
             cells_per_tile=self.tile_cells,
         )
-        store = build_tile_store(chain([first], stream), self.workdir / "points", grid=grid)
+        # the next chunks are read (parsed on their own thread) while these are binned
+        store = build_tile_store(
+            chain([first], iter_ahead(stream, name="s3d-spill")), self.workdir / "points", grid=grid
+        )
         logger.info("spilled %d points into %d tiles", store.n_points, len(store.tiles))
         return store
 
@@ -263,35 +272,46 @@ class TiledScan:
         return self.workdir / f"{tile[0]}_{tile[1]}.pyramid.pickle"
 
     def _build_pyramids(self) -> None:
+        """Every tile's pyramid, written to the scratch folder: tiles at the same time on
+        the thread budget's threads; the level sizes are summed in tile order."""
+        for sizes in map_in_threads(self._build_pyramid, self.tiles, name="s3d-pyramid"):
+            for number, n_voxels in enumerate(sizes):
+                self._level_sizes[number] += n_voxels
+
+    def _build_pyramid(self, tile: Tile) -> list[int]:
         config = self.config
-        for tile in self.tiles:
-            points = self._load_points(tile)
-            pyramid = build_pyramid(
-                points.cloud.xyz,
-                base_voxel_size_m=config.base_voxel_size_m,
-                n_levels=config.n_levels,
-                origin=self.origin,
-                attributes=self._attributes(points),
-            )
-            for number, level in enumerate(pyramid.levels):
-                self._level_sizes[number] += level.n_voxels
-            with self._pyramid_path(tile).open("wb") as stream:
-                pickle.dump(_TilePyramid.of(pyramid), stream, protocol=pickle.HIGHEST_PROTOCOL)
+        points = self._load_points(tile)
+        pyramid = build_pyramid(
+            points.cloud.xyz,
+            base_voxel_size_m=config.base_voxel_size_m,
+            n_levels=config.n_levels,
+            origin=self.origin,
+            attributes=self._attributes(points),
+        )
+        with self._pyramid_path(tile).open("wb") as stream:
+            pickle.dump(_TilePyramid.of(pyramid), stream, protocol=pickle.HIGHEST_PROTOCOL)
+        return [level.n_voxels for level in pyramid.levels]
 
     def _pyramid(self, tile: Tile) -> _TilePyramid:
         """A tile's pyramid, through a byte-bounded LRU cache (halos reread them)."""
-        cached = self._cache.get(tile)
-        if cached is not None:
-            self._cache.move_to_end(tile)
-            return cached
+        with self._lock:
+            cached = self._cache.get(tile)
+            if cached is not None:
+                self._cache.move_to_end(tile)
+                return cached
         # A scratch file this object wrote itself: pickle loads it ~5x faster than npz.
         with self._pyramid_path(tile).open("rb") as stream:
             pyramid: _TilePyramid = pickle.load(stream)
-        self._cache[tile] = pyramid
-        self._cache_bytes += pyramid.nbytes
-        while self._cache_bytes > self.cache_bytes and len(self._cache) > 1:
-            _, evicted = self._cache.popitem(last=False)
-            self._cache_bytes -= evicted.nbytes
+        with self._lock:  # another thread may have loaded it meanwhile: keep one copy
+            cached = self._cache.get(tile)
+            if cached is not None:
+                return cached
+            self._cache[tile] = pyramid
+            self._cache_bytes += pyramid.nbytes
+            limit = self.cache_bytes * self._cache_scale
+            while self._cache_bytes > limit and len(self._cache) > 1:
+                _, evicted = self._cache.popitem(last=False)
+                self._cache_bytes -= evicted.nbytes
         return pyramid
 
     # -- pass 3: features ------------------------------------------------------------------
@@ -341,14 +361,64 @@ class TiledScan:
         scratch folder; copies of this scan unpickled in other processes read them there
         instead of computing them again (the same values: the same rows).
         """
-        for number in range(self.config.n_levels):
-            if not self.config.per_point:
-                self._whole_level(number)
-            self._first_halo_m(number)
+        self._compute_shared()
         partial = self.workdir / f".{_SHARED_FILE}.partial"
         with partial.open("wb") as stream:
             pickle.dump((self._whole, self._first_halo), stream, protocol=pickle.HIGHEST_PROTOCOL)
         partial.replace(self.workdir / _SHARED_FILE)
+
+    def _compute_shared(self) -> None:
+        """The coarse levels described whole and every level's first halo (what every
+        tile reads; computed before tiles are computed at the same time)."""
+        for number in range(self.config.n_levels):
+            if not self.config.per_point:
+                self._whole_level(number)
+            self._first_halo_m(number)
+
+    def map_tiles(
+        self,
+        function: Callable[[TileFeatures], R],
+        *,
+        select: ArrayLike | None = None,
+        n_threads: int | None = None,
+    ) -> Iterator[R]:
+        """``function(features)`` for every tile with a selected point, tiles at the same time.
+
+        Each tile's rows are those of :meth:`tile_features` (so those of
+        :meth:`iter_features`), and ``function`` runs on the thread that computed them:
+        tiles are described and used on ``n_threads`` threads (default the thread budget,
+        :mod:`semantic3d.core.threads`), largest first, results as they finish (at most
+        twice ``n_threads`` held at once). Inside a tile, numba's kernels get a share of
+        the threads in proportion to the tile's points, so a scan whose points crowd into
+        a few tiles near the scanner still uses every core.
+        """
+        wanted = None if select is None else np.unique(np.asarray(select, dtype=np.int64))
+        n_threads = thread_budget() if n_threads is None else max(1, int(n_threads))
+        self._compute_shared()
+        total = max(1, self.n_points)
+        order = sorted(self.tiles, key=lambda tile: (-self.store.count(tile), tile))
+
+        def threads_of(tile: Tile) -> int:
+            return math.ceil(n_threads * self.store.count(tile) / total)
+
+        def task(tile: Tile) -> tuple[bool, R | None]:
+            features = self.tile_features(tile, select=wanted)
+            return (False, None) if features is None else (True, function(features))
+
+        self._cache_scale = n_threads
+        try:
+            for found, result in map_in_threads(
+                task,
+                order,
+                n_threads=n_threads,
+                ordered=False,
+                numba_threads_per_task=threads_of,
+                name="s3d-tile",
+            ):
+                if found:
+                    yield result  # type: ignore[misc]
+        finally:
+            self._cache_scale = 1
 
     def __getstate__(self) -> dict[str, object]:
         """What travels to another process: paths and numbers, no cached pyramid or rows."""
@@ -356,10 +426,12 @@ class TiledScan:
         state["_cache"] = OrderedDict()
         state["_cache_bytes"] = 0
         state["_whole"] = {}
+        del state["_lock"]
         return state
 
     def __setstate__(self, state: dict[str, object]) -> None:
         self.__dict__.update(state)
+        self._lock = threading.Lock()
         shared = self.workdir / _SHARED_FILE
         if shared.is_file():  # written by share() in the process that made the scan
             with shared.open("rb") as stream:

@@ -17,11 +17,12 @@ correctly rounded general algorithm (numpy's, which is CPython's ``dtoa``). Noth
 approximated.
 
 Work split (driven by :mod:`semantic3d.io._point_reader`): a window of whole lines is
-cut at newlines into segments (:func:`segment_bounds`), the lines of each are counted
-(:func:`count_lines`, vectorised), and every segment is parsed (:func:`parse_segment`)
-on its own thread straight into the output arrays at its row offset: no copy, no Python
-per line. The kernels release the GIL, so plain threads run them on all cores; one
-compiled parser serves every thread (a numba ``prange`` region would compile it twice).
+cut at newlines into segments (:func:`segment_bounds`), and one call of
+:func:`parse_window` counts the lines of each (:func:`count_lines`, vectorised) and
+parses every segment on its own thread straight into the output arrays at its row
+offset: no copy, no Python per line or per segment (a thread pool fed from Python spent
+more time handing segments out than parsing them on 16 cores). The kernels release the
+GIL and run on numba's threads (the package's thread budget).
 
 What bounds it: instructions, not memory. A benchmark line (~37 bytes) costs ~400
 instructions (~75 per coordinate, ~35 per integer, the line checks), ~5 cycles a byte on
@@ -463,6 +464,63 @@ def parse_segment(
     SLOW_FULL, to be resumed once the caller has converted them.
     """
     return _run(buf, readable, pos, end, row, xyz, intensity, rgb, slow, 0)
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def parse_window(
+    buf: np.ndarray,
+    readable: int,
+    bounds: np.ndarray,
+    first_row: int,
+    room: int,
+    xyz: np.ndarray,
+    intensity: np.ndarray,
+    rgb: np.ndarray,
+    slow: np.ndarray,
+    state: np.ndarray,
+) -> tuple[int, int, int]:  # pragma: no cover - compiled
+    """Parse the segments ``bounds[s]:bounds[s + 1]`` of a window, each on its own thread.
+
+    Counts the lines of every segment (in parallel); when they are more than ``room``
+    rows, the window is cut after the ``room``-th line (only the segment holding the cut
+    is scanned for it). Then parses every segment (in parallel) into the rows from
+    ``first_row`` on, segment ``s`` at its count's offset; its :func:`parse_segment`
+    result and end go to ``state[s]``, its deferred tokens to ``slow[s]``. Returns
+    ``(lines, segments, end of the window)``. One call per window: the caller runs no
+    Python per segment.
+    """
+    n = bounds.shape[0] - 1
+    counts = np.empty(n, np.int64)
+    for s in nb.prange(n):
+        counts[s] = count_lines(buf, bounds[s], bounds[s + 1])
+    total = 0
+    for s in range(n):
+        total += counts[s]
+    if total > room:  # the batch's last lines: cut inside the segment that reaches room
+        before = 0
+        cut = 0
+        while before + counts[cut] < room:
+            before += counts[cut]
+            cut += 1
+        bounds[cut + 1] = after_newline(buf, bounds[cut], room - before)
+        counts[cut] = room - before
+        n = cut + 1
+        total = room
+    rows = np.empty(n, np.int64)
+    row = first_row
+    for s in range(n):
+        rows[s] = row
+        row += counts[s]
+    for s in nb.prange(n):
+        status, pos, last, n_slow = _run(
+            buf, readable, bounds[s], bounds[s + 1], rows[s], xyz, intensity, rgb, slow[s], 0
+        )
+        state[s, STATE_STATUS] = status
+        state[s, STATE_POS] = pos
+        state[s, STATE_ROW] = last
+        state[s, STATE_SLOW] = n_slow
+        state[s, STATE_END] = bounds[s + 1]
+    return total, n, bounds[n]
 
 
 @nb.njit(cache=True, nogil=True)

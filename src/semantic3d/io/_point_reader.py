@@ -16,11 +16,9 @@ found.
 from __future__ import annotations
 
 import mmap
-from collections.abc import Callable, Generator, Iterator
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Generator, Iterator
 from contextlib import suppress
 from pathlib import Path
-from typing import Any, TypeVar
 
 import numba
 import numpy as np
@@ -41,7 +39,6 @@ _SEGMENT_BYTES = 1 << 16  # the least worth a thread
 _SLOW_CAPACITY = 4096  # deferred tokens per segment before it pauses for conversion
 _TOKEN_WIDTH = 64
 _RELEASE_BYTES = 16 << 20
-T = TypeVar("T")
 _Region = tuple[np.ndarray, int, int, int]
 """A buffer, the range of whole lines to parse in it, and how far it may be read."""
 
@@ -55,7 +52,8 @@ def iter_point_batches(path: Path, chunk_size: int, window_bytes: int) -> Iterat
         if mapped is None:
             regions = _block_regions(path, window_bytes)
         else:
-            regions = _mapped_regions(path, mapped, size)
+            step = max(_RELEASE_BYTES, 2 * reader.window_bytes)
+            regions = _mapped_regions(path, mapped, size, step)
         try:
             yield from reader.run(regions, size if mapped is not None else None)
         finally:
@@ -83,8 +81,10 @@ class _Reader:
     def __init__(self, path: Path, chunk_size: int, window_bytes: int) -> None:
         self.path = path
         self.chunk_size = chunk_size
-        self.window_bytes = max(int(window_bytes), 1)
+        # more threads, longer windows: the Python between two windows stays a small share
+        self.window_bytes = max(int(window_bytes), 1) * max(1, numba.get_num_threads() // 4)
         self.batch_rows = chunk_size * max(1, -(-MIN_BATCH_ROWS // chunk_size))
+        # several segments per thread: equal bytes are not equal work on a loaded machine
         self.max_segments = max(1, numba.get_num_threads() * 4)
         self.slow = np.empty((self.max_segments, _SLOW_CAPACITY, 4), np.int64)
         self.state = np.zeros((self.max_segments, kernels.STATE_SIZE), np.int64)
@@ -121,45 +121,28 @@ class _Reader:
         window_stop = kernels.window_end(buf, pos, pos + self.window_bytes, stop, MAX_LINE_BYTES)
         if window_stop < 0:
             raise _long_line_error(self.path)
-        n_segments = int(max(1, min(self.max_segments, (window_stop - pos) // _SEGMENT_BYTES)))
-        bounds, counts = self._count(buf, pos, window_stop, n_segments)
         room = batch.capacity - batch.filled
-        if counts.sum() > room:
-            window_stop = kernels.after_newline(buf, pos, room)
-            bounds, counts = self._count(buf, pos, window_stop, n_segments)
-        rows = batch.filled + np.concatenate([[0], np.cumsum(counts)])
-        self.state[:n_segments, : kernels.STATE_END] = _in_parallel(
-            kernels.parse_segment,
-            [
-                (
-                    buf,
-                    readable,
-                    int(bounds[s]),
-                    int(bounds[s + 1]),
-                    int(rows[s]),
-                    batch.xyz,
-                    batch.intensity,
-                    batch.rgb,
-                    self.slow[s],
-                )
-                for s in range(n_segments)
-            ],
+        n_segments = int(max(1, min(self.max_segments, (window_stop - pos) // _SEGMENT_BYTES)))
+        bounds = kernels.segment_bounds(buf, pos, window_stop, n_segments)
+        n_lines, n_segments, window_stop = kernels.parse_window(
+            buf,
+            readable,
+            bounds,
+            batch.filled,
+            room,
+            batch.xyz,
+            batch.intensity,
+            batch.rgb,
+            self.slow,
+            self.state,
         )
-        self.state[:n_segments, kernels.STATE_END] = bounds[1:]
         state = self.state[:n_segments]
         if state[:, kernels.STATE_STATUS].any() or state[:, kernels.STATE_SLOW].any():
             for segment in range(n_segments):
                 self._resolve(buf, readable, segment, batch)
-        batch.filled += int(counts.sum())
+        batch.filled += int(n_lines)
         self.consumed(window_stop - pos)
         return int(window_stop)
-
-    def _count(
-        self, buf: np.ndarray, start: int, stop: int, n_segments: int
-    ) -> tuple[np.ndarray, np.ndarray]:
-        bounds = kernels.segment_bounds(buf, start, stop, n_segments)
-        jobs = [(buf, int(bounds[s]), int(bounds[s + 1])) for s in range(n_segments)]
-        return bounds, np.array(_in_parallel(kernels.count_lines, jobs), np.int64)
 
     def _resolve(self, buf: np.ndarray, readable: int, segment: int, batch: _Batch) -> None:
         """Convert a segment's deferred tokens, resume it when it paused, raise its problem."""
@@ -215,24 +198,6 @@ class _Reader:
         return self.lines_before + row + 1
 
 
-_POOL: ThreadPoolExecutor | None = None
-
-
-def _in_parallel(function: Callable[..., T], jobs: list[tuple[Any, ...]]) -> list[T]:
-    """``function(*job)`` for every job, on all cores; results in job order.
-
-    The kernels release the GIL, so threads run them in parallel; queued jobs go to
-    whichever worker is free, so a loaded machine still balances.
-    """
-    global _POOL
-    if len(jobs) == 1:
-        return [function(*jobs[0])]
-    if _POOL is None:
-        _POOL = ThreadPoolExecutor(max_workers=numba.get_num_threads())
-    futures = [_POOL.submit(function, *job) for job in jobs]
-    return [future.result() for future in futures]
-
-
 def _map(stream: object, size: int) -> mmap.mmap | None:
     """A read-only map of the file, or None when it cannot be mapped (a pipe, size 0)."""
     if size == 0:
@@ -246,7 +211,9 @@ def _map(stream: object, size: int) -> mmap.mmap | None:
     return mapped
 
 
-def _mapped_regions(path: Path, mapped: mmap.mmap, size: int) -> Generator[_Region, None, None]:
+def _mapped_regions(
+    path: Path, mapped: mmap.mmap, size: int, step: int
+) -> Generator[_Region, None, None]:
     """The mapped file up to its last newline, then (padded copy) a last line without one."""
     body_end = mapped.rfind(b"\n") + 1
     if size - body_end > MAX_LINE_BYTES:
@@ -254,7 +221,7 @@ def _mapped_regions(path: Path, mapped: mmap.mmap, size: int) -> Generator[_Regi
     buf = np.frombuffer(mapped, np.uint8)
     try:
         if body_end:
-            yield from _released(mapped, buf, body_end, size)
+            yield from _released(mapped, buf, body_end, size, step)
         if body_end < size:
             tail = mapped[body_end:size] + b"\n" + bytes(kernels.FAST_MARGIN)
             padded = np.frombuffer(tail, np.uint8)
@@ -263,7 +230,9 @@ def _mapped_regions(path: Path, mapped: mmap.mmap, size: int) -> Generator[_Regi
         del buf
 
 
-def _released(mapped: mmap.mmap, buf: np.ndarray, body_end: int, size: int) -> Iterator[_Region]:
+def _released(
+    mapped: mmap.mmap, buf: np.ndarray, body_end: int, size: int, step: int
+) -> Iterator[_Region]:
     """Yield the body in steps, dropping the pages behind the cursor from the mapping.
 
     Dropped pages stay in the page cache; they only stop counting as this process's
@@ -272,12 +241,12 @@ def _released(mapped: mmap.mmap, buf: np.ndarray, body_end: int, size: int) -> I
     released = 0
     start = 0
     while start < body_end:
-        stop = min(start + _RELEASE_BYTES, body_end)
+        stop = min(start + step, body_end)
         if stop < body_end:  # whole lines only: extend to the next newline
             stop = mapped.find(b"\n", stop - 1) + 1
         ahead = stop - stop % mmap.PAGESIZE
         with suppress(OSError, ValueError):
-            mapped.madvise(mmap.MADV_WILLNEED, ahead, min(_RELEASE_BYTES, size - ahead))
+            mapped.madvise(mmap.MADV_WILLNEED, ahead, min(step, size - ahead))
         yield buf, start, stop, size
         keep = stop - stop % mmap.PAGESIZE
         if keep > released:

@@ -2,7 +2,8 @@
 
 Reading streams the file in blocks of whole lines. The benchmark's files hold one digit
 per line (``0``..``8``); those take a compiled fast path over all cores that validates
-every byte, and any other shape (CRLF line ends, blanks, several digits) falls back for
+every byte, straight from the file's memory map into the result (one pass: memory
+bandwidth, not one core, bounds it), and any other shape (CRLF line ends, blanks, several digits) falls back for
 that block to the checking parser :class:`~semantic3d.io.labelstream.LabelStream` runs
 (one parser for both: ``_label_parsing.parse_lines``; small files are parsed with numpy,
 long ones by compiled kernels, with the same results). Values above 255 are rejected:
@@ -12,7 +13,10 @@ every bad line rather than stop at the first, use ``LabelStream``.
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Iterator
+import mmap
+import stat
+from collections.abc import Generator, Iterable, Iterator
+from contextlib import contextmanager, suppress
 from pathlib import Path
 
 import numpy as np
@@ -58,11 +62,87 @@ def iter_labels(
     empty line, non-integer or value above 255.
     """
     chunk_size = validate_chunk_size(chunk_size)
-    return rechunk(_iter_label_blocks(Path(path), block_bytes), chunk_size, concatenate_arrays)
+    return _iter_labels(Path(path), chunk_size, block_bytes)
+
+
+def _iter_labels(path: Path, chunk_size: int, block_bytes: int) -> Iterator[NDArray[np.uint8]]:
+    done, complete = yield from _iter_mapped_single_digit(path, chunk_size)
+    if complete:
+        return
+    # Not (only) one digit a line: the checking parser, from the start, past what was given.
+    chunks = rechunk(_iter_label_blocks(path, block_bytes), chunk_size, concatenate_arrays)
+    for chunk in chunks:
+        if done >= chunk.size:
+            done -= chunk.size
+            continue
+        yield chunk[done:]
+        done = 0
+
+
+def _iter_mapped_single_digit(
+    path: Path, chunk_size: int
+) -> Generator[NDArray[np.uint8], None, tuple[int, bool]]:
+    """The labels of a file of ``d\n`` lines, parsed chunk by chunk straight from its
+    memory map into each chunk (in parallel, no block copy); stops at the first chunk of
+    another shape. Returns ``(labels yielded, whether that was the whole file)``."""
+    with _mapped_pairs(path) as (pairs, mapped):
+        if pairs is None or mapped is None:
+            return 0, False
+        n = pairs.size // 2
+        for start in range(0, n, chunk_size):
+            stop = min(start + chunk_size, n)
+            out = np.empty(stop - start, np.uint8)
+            if parsing.parse_single_digit(pairs[2 * start : 2 * stop], out):
+                return start, False
+            yield out
+            # pages behind the cursor stop counting as this process's memory
+            behind = 2 * stop - (2 * stop) % mmap.PAGESIZE
+            with suppress(OSError, ValueError):
+                mapped.madvise(mmap.MADV_DONTNEED, 0, behind)
+        return n, True
+
+
+@contextmanager
+def _mapped_pairs(
+    path: Path,
+) -> Iterator[tuple[NDArray[np.uint8], mmap.mmap] | tuple[None, None]]:
+    """A large regular file of even size as a read-only uint8 array over its map (and the
+    map), else ``(None, None)``."""
+    try:
+        status = path.stat()
+        size = status.st_size
+        if not stat.S_ISREG(status.st_mode) or size % 2 or size <= parsing.SMALL_TEXT_BYTES:
+            yield None, None
+            return
+        with path.open("rb") as stream:
+            mapped = mmap.mmap(stream.fileno(), 0, access=mmap.ACCESS_READ)
+    except (OSError, ValueError):
+        yield None, None
+        return
+    with suppress(OSError, AttributeError):
+        mapped.madvise(mmap.MADV_SEQUENTIAL)
+    pairs = np.frombuffer(mapped, np.uint8)
+    try:
+        yield pairs, mapped
+    finally:
+        del pairs
+        with suppress(BufferError):
+            mapped.close()
 
 
 def read_labels(path: str | Path) -> NDArray[np.uint8]:
-    """All labels of ``path`` as one uint8 array."""
+    """All labels of ``path`` as one uint8 array.
+
+    A file of ``d\n`` lines (the benchmark's) is parsed in one pass from its memory map
+    into the result, on all the thread budget's cores; any other shape is read as
+    :func:`iter_labels` reads it.
+    """
+    path = Path(path)
+    with _mapped_pairs(path) as (pairs, _):
+        if pairs is not None:
+            out = np.empty(pairs.size // 2, np.uint8)
+            if parsing.parse_single_digit(pairs, out) == 0:
+                return out
     chunks = list(iter_labels(path))
     return concatenate_arrays(chunks) if chunks else np.empty(0, np.uint8)
 

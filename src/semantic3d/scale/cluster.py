@@ -113,11 +113,18 @@ class DaskCluster:
 
         self.spec = spec
         self._local: LocalCluster | None = None
+        # Dask's own log lines (every worker started, every connection closed, the
+        # CommClosedError of a worker that outlives the scheduler by a heartbeat at
+        # shutdown) are shown with --verbose only; failed tasks are raised here anyway.
+        self._quiet = logging.getLogger().getEffectiveLevel() > logging.INFO
+        self._log_levels = _quiet_dask_logs(logging.WARNING) if self._quiet else None
         try:
             if spec.scheduler is not None:
                 self.client: Client = Client(spec.scheduler, timeout=spec.timeout_s)
             else:
                 env = {name: str(spec.threads_per_worker) for name in THREAD_VARIABLES}
+                if self._quiet:  # the workers' own log lines go to this terminal too
+                    env["DASK_LOGGING__DISTRIBUTED"] = "critical"
                 self._local = LocalCluster(
                     n_workers=spec.n_workers,
                     threads_per_worker=spec.threads_per_worker,
@@ -148,13 +155,21 @@ class DaskCluster:
         self.close()
 
     def close(self) -> None:
-        """Disconnect; stop the workers this object started."""
-        client = getattr(self, "client", None)
-        if client is not None:
-            client.close()
-        if self._local is not None:
-            self._local.close()
-            self._local = None
+        """Disconnect; stop the workers this object started (quietly: a clean shutdown
+        prints nothing)."""
+        if self._quiet:
+            _quiet_dask_logs(logging.CRITICAL)
+        try:
+            client = getattr(self, "client", None)
+            if client is not None:
+                client.close()
+            if self._local is not None:
+                self._local.close()
+                self._local = None
+        finally:
+            if self._log_levels is not None:
+                _restore_log_levels(self._log_levels)
+                self._log_levels = None
 
     @property
     def n_threads(self) -> int:
@@ -230,6 +245,24 @@ class DaskCluster:
             while next_index in waiting:
                 yield waiting.pop(next_index)
                 next_index += 1
+
+
+_DASK_LOGGERS = ("distributed", "tornado", "asyncio", "bokeh")
+
+
+def _quiet_dask_logs(level: int) -> dict[str, int]:
+    """Raise Dask's loggers (and those of its event loop) to ``level``; return the old levels."""
+    before = {}
+    for name in _DASK_LOGGERS:
+        log = logging.getLogger(name)
+        before[name] = log.level
+        log.setLevel(max(level, log.level))
+    return before
+
+
+def _restore_log_levels(levels: dict[str, int]) -> None:
+    for name, level in levels.items():
+        logging.getLogger(name).setLevel(level)
 
 
 def _task_keys(function: Callable[..., Any], total: int) -> list[str]:

@@ -43,6 +43,7 @@ from semantic3d.baselines.common.submission import (
 )
 from semantic3d.core.errors import ShapeError
 from semantic3d.core.pointcloud import PointCloud
+from semantic3d.core.threads import numba_threads, thread_budget
 
 __all__ = [
     "LabelledBlock",
@@ -52,6 +53,7 @@ __all__ = [
     "parallel_scans_limit",
     "predict_scan",
     "predict_scans",
+    "scans_at_once",
     "write_prediction_set",
 ]
 
@@ -172,6 +174,12 @@ def predict_scan(
     )
     write_atomic_text(record, json.dumps(run.to_dict(), indent=2) + "\n")
     return run
+
+
+def scans_at_once(n_scans: int) -> int:
+    """How many of ``n_scans`` scans to label at once by default: one per 4 threads of the
+    budget (each scan's tiles use its share), at least 2, at most ``n_scans``."""
+    return max(1, min(n_scans, max(2, thread_budget() // 4)))
 
 
 def parallel_scans_limit(predictor: Predictor) -> int | None:
@@ -338,14 +346,17 @@ def _predict_in_threads(
 
         if stop.is_set():
             raise _StoppedError
-        return predict_scan(
-            predictor,
-            scans[index].points_path,
-            out_path=folder / scans[index].output_name,
-            workdir=workdir,
-            progress=update,
-            overwrite=overwrite,
-        )
+        with numba_threads(share):  # each scan's kernels and tiles: its share of the budget
+            return predict_scan(
+                predictor,
+                scans[index].points_path,
+                out_path=folder / scans[index].output_name,
+                workdir=workdir,
+                progress=update,
+                overwrite=overwrite,
+            )
+
+    share = max(1, thread_budget() // n_threads)
 
     pool = ThreadPoolExecutor(max_workers=n_threads, thread_name_prefix="predict-scan")
     futures = [pool.submit(label, index) for index in range(len(scans))]

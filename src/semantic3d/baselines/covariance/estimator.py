@@ -20,6 +20,7 @@ from semantic3d.baselines.covariance.forest import (
     compile_forest,
 )
 from semantic3d.core.errors import require
+from semantic3d.core.threads import thread_budget
 
 _sklearn_base: Any = require("sklearn.base", "ml")
 _ensemble: Any = require("sklearn.ensemble", "ml")
@@ -39,7 +40,8 @@ class CovarianceClassifier(_sklearn_base.ClassifierMixin, _sklearn_base.BaseEsti
         max_features: features tried per split (``"sqrt"``, a fraction, a count, or None: all).
         class_weight: passed to the forest (training data are already class-balanced
             by :func:`~semantic3d.baselines.covariance.training.sample_training_points`).
-        n_jobs: threads for fitting (None: 1, -1: all cores).
+        n_jobs: threads for fitting (None: 1, -1: the thread budget, all cores by
+            default; see :mod:`semantic3d.core.threads`).
         random_state: seed of the forest.
 
     Attributes:
@@ -79,7 +81,7 @@ class CovarianceClassifier(_sklearn_base.ClassifierMixin, _sklearn_base.BaseEsti
             min_samples_leaf=self.min_samples_leaf,
             max_features=self.max_features,
             class_weight=self.class_weight,
-            n_jobs=self.n_jobs,
+            n_jobs=_n_jobs(self.n_jobs),
             random_state=self.random_state,
         )
         forest.fit(X_checked, y_checked)
@@ -117,3 +119,12 @@ class CovarianceClassifier(_sklearn_base.ClassifierMixin, _sklearn_base.BaseEsti
         tags = super().__sklearn_tags__()
         tags.input_tags.allow_nan = False
         return tags
+
+
+def _n_jobs(n_jobs: int | None) -> int | None:
+    """scikit-learn's ``n_jobs`` with "all cores" (``-1``; ``-2`` all but one, ...) read
+    as the package's thread budget (:mod:`semantic3d.core.threads`), so ``--threads``
+    caps the forest too. The fitted forest does not depend on it."""
+    if n_jobs is None or n_jobs > 0:
+        return n_jobs
+    return max(1, thread_budget() + 1 + n_jobs)

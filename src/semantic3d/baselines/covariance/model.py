@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import math
+import threading
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,12 +24,14 @@ from semantic3d.baselines.covariance.context import (
 from semantic3d.baselines.covariance.forest import CompiledClassifier
 from semantic3d.core.errors import ShapeError
 from semantic3d.core.pointcloud import PointCloud
+from semantic3d.core.threads import serial_section
 from semantic3d.features.multiscale import FeatureTable
 from semantic3d.features.pyramid import grid_origin
 from semantic3d.spatial.grid import TileGrid
 
 if TYPE_CHECKING:  # the estimator imports scikit-learn; prediction does not need it
     from semantic3d.baselines.covariance.estimator import CovarianceClassifier
+    from semantic3d.features.scan import FeatureBlock
 
 logger = logging.getLogger(__name__)
 
@@ -118,47 +121,60 @@ class CovarianceModel:
     ) -> Iterator[LabelledBlock]:
         """Label a streamed scan (the :class:`~semantic3d.baselines.common.Predictor` protocol).
 
-        The scan goes through :func:`~semantic3d.features.scan.iter_scan_features` (whole in
-        memory when small, tile by tile otherwise). Each feature row is classified once: in
+        The scan goes through :func:`~semantic3d.features.scan.map_scan_features` (whole in
+        memory when small, tile by tile otherwise: tiles described and labelled on the
+        thread budget's threads at once, blocks as they finish; the labels of every tile
+        are the same as alone). Each feature row is classified once: in
         voxel mode a row is a level-0 voxel and its label goes to every point inside it
         (they all have the same features, so this *is* per-point prediction); in per-point
         mode every point has its own row.
         """
-        from semantic3d.features.scan import iter_scan_features
+        from semantic3d.features.scan import map_scan_features
 
         prediction = self.config.prediction
         positions = _PositionFile(workdir, self.config) if self.context.enabled else None
-        for block in iter_scan_features(
+
+        def label(block: FeatureBlock) -> LabelledBlock:
+            return LabelledBlock(
+                block.point_indices,
+                self._label_block(block, positions),
+                block.n_scan_points,
+                tiled=block.tiled,
+            )
+
+        yield from map_scan_features(
             chunks if positions is None else positions.record(chunks),
+            label,
             config=self.config.features,
             max_points_in_memory=prediction.max_points_in_memory,
             tile_size_m=prediction.tile_size_m,
             workdir=workdir / "tiles",
-        ):
-            if positions is None:
-                row_labels = self.predict_rows(block.table.values)
-            else:
-                table = block.table
-                if self.needs_row_positions(table):
-                    xyz, tiles = positions.read(block.point_indices)
-                    row_xyz = row_centroids(xyz, table.point_row, table.n_rows)
-                else:  # the graph comes with the features: only the rows' tiles are needed
-                    row_xyz = None
-                    tiles = positions.read_tiles(block.point_indices)
-                row_tile = np.zeros(table.n_rows, np.int64)
-                row_tile[table.point_row] = tiles
-                row_labels = self.predict_rows(
-                    table.values,
-                    row_xyz=row_xyz,
-                    row_tile=row_tile,
-                    neighbours=table.neighbours,
-                )
-            yield LabelledBlock(
-                block.point_indices,
-                row_labels[block.table.point_row],
-                block.n_scan_points,
-                tiled=block.tiled,
+        )
+
+    def _label_block(
+        self, block: FeatureBlock, positions: _PositionFile | None
+    ) -> NDArray[np.uint8]:
+        """Label values of a feature block's points (the rows' labels, per point)."""
+        table = block.table
+        if positions is None:
+            row_labels = self.predict_rows(table.values)
+        else:
+            if self.needs_row_positions(table):
+                xyz, tiles = positions.read(block.point_indices)
+                row_xyz = row_centroids(xyz, table.point_row, table.n_rows)
+            else:  # the graph comes with the features: only the rows' tiles are needed
+                row_xyz = None
+                tiles = positions.read_tiles(block.point_indices)
+            row_tile = np.zeros(table.n_rows, np.int64)
+            row_tile[table.point_row] = tiles
+            row_labels = self.predict_rows(
+                table.values,
+                row_xyz=row_xyz,
+                row_tile=row_tile,
+                neighbours=table.neighbours,
             )
+        labels: NDArray[np.uint8] = row_labels[table.point_row]
+        return labels
 
     def needs_row_positions(self, table: FeatureTable) -> bool:
         """Whether :meth:`predict_rows` needs ``row_xyz`` for ``table``: the context step is
@@ -219,16 +235,17 @@ class CovarianceModel:
             logger.warning("context step skipped: no row positions or neighbours were given")
         if not graph or not context.enabled:
             columns = np.argmax(proba, axis=1)
-        else:
-            columns = label_rows_by_group(
-                proba,
-                None if row_xyz is None else np.asarray(row_xyz, dtype=np.float64),
-                np.zeros(proba.shape[0], np.int64) if row_tile is None else row_tile,
-                potts_weight=context.potts_weight,
-                n_neighbours=context.n_neighbours,
-                max_sweeps=context.max_sweeps,
-                neighbours=neighbours,
-            )
+        else:  # the cut of one group is serial: in a tile's task, lend its other threads
+            with serial_section():
+                columns = label_rows_by_group(
+                    proba,
+                    None if row_xyz is None else np.asarray(row_xyz, dtype=np.float64),
+                    np.zeros(proba.shape[0], np.int64) if row_tile is None else row_tile,
+                    potts_weight=context.potts_weight,
+                    n_neighbours=context.n_neighbours,
+                    max_sweeps=context.max_sweeps,
+                    neighbours=neighbours,
+                )
         labels: NDArray[np.uint8] = classes[columns]
         return labels
 
@@ -265,6 +282,7 @@ class _PositionFile:
         self._xyz: NDArray[np.float32] | None = None
         self._tiles: NDArray[np.int64] | None = None
         self._complete = False
+        self._lock = threading.Lock()
 
     def record(self, chunks: Iterable[PointCloud]) -> Iterator[PointCloud]:
         """Pass ``chunks`` through, appending their positions and tiles to the files."""
@@ -302,12 +320,13 @@ class _PositionFile:
     def _open(self) -> tuple[NDArray[np.float32], NDArray[np.int64]]:
         if not self._complete:
             raise RuntimeError(f"{self.folder}: read before the scan finished streaming")
-        if self._xyz is None or self._tiles is None:
-            self._xyz = np.memmap(self.folder / "xyz.f32", dtype=np.float32, mode="r").reshape(
-                -1, 3
-            )
-            self._tiles = np.memmap(self.folder / "tiles.i64", dtype=np.int64, mode="r")
-        return self._xyz, self._tiles
+        with self._lock:  # tiles are labelled on several threads
+            if self._xyz is None or self._tiles is None:
+                self._xyz = np.memmap(self.folder / "xyz.f32", dtype=np.float32, mode="r").reshape(
+                    -1, 3
+                )
+                self._tiles = np.memmap(self.folder / "tiles.i64", dtype=np.int64, mode="r")
+            return self._xyz, self._tiles
 
 
 def concurrent_scans_supported() -> bool:

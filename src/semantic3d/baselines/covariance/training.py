@@ -29,6 +29,7 @@ from semantic3d.baselines.covariance.estimator import CovarianceClassifier
 from semantic3d.baselines.covariance.model import CovarianceModel, GridSearchResult
 from semantic3d.core.classes import N_CLASSES, class_by_value
 from semantic3d.core.errors import DataFormatError, require
+from semantic3d.core.threads import map_in_threads, thread_budget
 from semantic3d.features.scan import iter_scan_features
 
 __all__ = [
@@ -168,7 +169,7 @@ def build_training_set(
     started = time.perf_counter()
     if not scans:
         raise TrainingDataError("training needs at least one labelled scan")
-    mapper: ItemMapper = map_scans if map_scans is not None else _map_here
+    mapper: ItemMapper = map_scans if map_scans is not None else _map_in_threads
     counts = np.stack(list(mapper(count_scan_labels, list(scans))))
     drawn = sample_training_points(
         counts,
@@ -177,14 +178,30 @@ def build_training_set(
         seed=config.sampling.seed,
     )
     selections = list(mapper(_drawn_point_indices, list(zip(scans, drawn, strict=True))))
-    describe = rows_of_scan or partial(scan_training_rows, config=config)
+    items = [(scan, select) for scan, select in zip(scans, selections, strict=True)]
+    if rows_of_scan is not None:
+        described: Iterable[ScanRows] = (
+            rows_of_scan(scan, select) if select.size else _no_rows(select)
+            for scan, select in items
+        )
+    else:  # scans described at the same time, each with a share of the thread budget
+        n_at_once = max(1, min(len(items), thread_budget() // _THREADS_PER_SCAN))
+        described = map_in_threads(
+            partial(_scan_rows, config=config),
+            items,
+            n_threads=n_at_once,
+            numba_threads_per_task=max(1, thread_budget() // n_at_once),
+            max_pending=n_at_once,
+            name="s3d-train-scan",
+        )
     features, labels, groups = [], [], []
-    for number, (scan, select) in enumerate(zip(scans, selections, strict=True)):
+    for number, ((scan, select), (indices, rows, values)) in enumerate(
+        zip(items, described, strict=True)
+    ):
         if progress is not None:
             progress("features", number, len(scans))
         if select.size == 0:
             continue
-        indices, rows, values = describe(scan, select)
         if not np.array_equal(indices, select):  # a broken rows_of_scan, never the data
             raise RuntimeError(f"{scan.name}: rows for {indices.size} of {select.size} points")
         features.append(rows)
@@ -244,8 +261,25 @@ def merge_scan_rows(
     return indices[order], rows, np.concatenate(labels)[order]
 
 
-def _map_here(function: Callable[[Any], Any], items: Sequence[Any]) -> Iterator[Any]:
-    return map(function, items)
+_THREADS_PER_SCAN = 4
+"""Threads one scan's features keep busy (numba kernels between Python steps): the
+training scans are described ``budget // 4`` at a time (memory: that many scans)."""
+
+
+def _map_in_threads(function: Callable[[Any], Any], items: Sequence[Any]) -> Iterator[Any]:
+    """Label passes over the scans, one scan per thread, in order."""
+    return map_in_threads(function, items, name="s3d-train-labels")
+
+
+def _scan_rows(
+    item: tuple[LabelledScan, NDArray[np.int64]], *, config: CovarianceConfig
+) -> ScanRows:
+    scan, select = item
+    return scan_training_rows(scan, select, config=config) if select.size else _no_rows(select)
+
+
+def _no_rows(select: NDArray[np.int64]) -> ScanRows:
+    return select, np.empty((0, 0), np.float32), np.empty(0, np.uint8)
 
 
 def _classes_to_draw(

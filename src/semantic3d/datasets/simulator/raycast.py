@@ -257,7 +257,7 @@ def trace_ray(
     return t_best, best
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def cast_kernel(
     origin: np.ndarray,
     directions: np.ndarray,

@@ -103,7 +103,7 @@ def approximate_normal(key: np.uint64, ray_id: np.uint64, stream: np.uint64) -> 
     return (total - 131070.0) * (1.0 / 37837.23)
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def shade_kernel(
     origin: np.ndarray,
     directions: np.ndarray,
@@ -195,7 +195,7 @@ def shade_kernel(
     return xyz, intensity, rgb, out_labels
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def zone_labels_kernel(
     xy: np.ndarray,
     zones: np.ndarray,

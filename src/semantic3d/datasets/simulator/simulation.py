@@ -19,6 +19,7 @@ import numpy as np
 
 from semantic3d import __version__
 from semantic3d.core import N_CLASSES, class_by_value
+from semantic3d.core.threads import iter_ahead, thread_budget
 from semantic3d.datasets.simulator.errors import SimulationConfigError
 from semantic3d.datasets.simulator.scanner import (
     Scanner,
@@ -260,9 +261,17 @@ def _write_station(
     stem = f"{compiled.scene.name}_{station.name}"
     points_path, labels_path = out / f"{stem}.txt", out / f"{stem}.labels"
     counts = np.zeros(N_CLASSES + 1, np.int64)
-    # Blocks as they come: the file's bytes do not depend on how points are grouped.
-    chunks = iter_sweep_blocks(
-        compiled, station, plan=plan, seed=seed, scanner=scanner, chunk_size=chunk_size
+    # Blocks as they come: the file's bytes do not depend on how points are grouped. The
+    # next block is cast and shaded on a thread of its own while this one is written.
+    chunks = iter_ahead(
+        iter_sweep_blocks(
+            compiled, station, plan=plan, seed=seed, scanner=scanner, chunk_size=chunk_size
+        ),
+        # formatting and writing cost about a sixth of casting and shading: overlapping
+        # them pays from 6 threads on, the writer taking a sixth of them
+        consumer_threads=max(1, round(thread_budget() / 6)),
+        min_threads=6,
+        name="semantic3d-sweep",
     )
     with open_ascii_writer(points_path, labels_path=labels_path) as writer:
         for chunk in chunks:

@@ -70,7 +70,7 @@ class SweepAngles:
         )
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def sweep_cast_kernel(
     origin: np.ndarray,
     first: int,
@@ -142,7 +142,7 @@ def sweep_cast_kernel(
     return distance, hit
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def sweep_rays_kernel(
     block_indices: np.ndarray,
     first: int,

@@ -1,0 +1,415 @@
+"""How the CPU paths scale with threads: one table, each path at 1, 2, 4, 8, 16 threads.
+
+    python benchmarks/bench_scaling.py [--quick] [--points 10000000] [--threads 1 2 4 8 16]
+                                       [--oakland ../shared/data/oakland] [--repeat 3]
+
+Thread counts above the machine's cores are left out, so the same command gives the whole
+table on a 16-core machine. Every measurement runs in a fresh process capped at ``N``
+threads (``NUMBA_NUM_THREADS`` = ``OMP_NUM_THREADS`` = N and
+:func:`semantic3d.core.threads.set_thread_limit`), warmed up first (numba's cached
+kernels loaded; the best of ``--repeat`` runs), on the same files, in the same run:
+
+- ``iter_points``: an ASCII scan (``--points`` lines of the street scene) streamed
+  through :func:`semantic3d.io.iter_ascii_points`; peer: ``pyarrow.csv.read_csv`` with
+  ``pyarrow.set_cpu_count(N)`` (its block reader, every block on its own thread);
+- ``read_labels``: the scan's ``.labels`` 32 times over (one file); peer:
+  ``pyarrow.csv.read_csv`` of the same file;
+- ``simulate``: :func:`semantic3d.datasets.simulator.simulate` of that scan (text written);
+- ``predict``: the covariance baseline on that one scan, tiled whatever its size
+  (``predict_scan``, labels and run record written), with the model trained below;
+- ``train``: :func:`semantic3d.baselines.covariance.training.train_covariance_model` on the
+  Oakland scans (``--oakland``; three simulated scans when absent), default configuration;
+- ``evaluate``: :func:`semantic3d.evaluation.evaluate_submission` of 8 scans (links to the
+  scan's labels 4 times over: ground truth and a prediction of it), label pairs per second.
+
+Each row gives the rate (items per second, wall clock), CPU seconds (and their ratio to
+the peer's, which a loaded machine disturbs less than wall time), the mean number of
+the process's threads running or ready to run while it worked (sampled every 2 ms: a
+load-independent view of how parallel it was) and the peer's rate at the same count. Per
+path, the Amdahl serial fraction ``s`` is fitted to the speed-ups over 1 thread (least
+squares on ``1/S(n) = s + (1 - s)/n``), with the speed-up it predicts on 16 threads; with
+only 1 and 2 threads (a 2-core machine) the fit is exact and the 16-thread figure a
+prediction. ``s`` is also estimated from the 2-thread run's thread samples (time with one
+thread running over the time one thread would take), which a loaded machine disturbs less
+than wall time. The load average is printed beside every row: compare rows of one run.
+Writes ``benchmarks/out/bench_scaling.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[1]
+OUT = ROOT / "benchmarks" / "out"
+PATHS = ("iter_points", "read_labels", "simulate", "predict", "train", "evaluate")
+PEERS = {"iter_points": "pyarrow.csv", "read_labels": "pyarrow.csv"}
+N_EVALUATED_SCANS = 8
+
+
+# --- the measured process ------------------------------------------------------------------
+
+
+class _Sampler:
+    """Counts this process's threads in state R (running or ready) every 2 ms."""
+
+    def __init__(self) -> None:
+        self.counts: Counter[int] = Counter()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def __enter__(self) -> _Sampler:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join()
+
+    def _run(self) -> None:
+        me = threading.get_native_id()
+        while not self._stop.is_set():
+            running = 0
+            for task in Path("/proc/self/task").iterdir():
+                if int(task.name) == me:
+                    continue
+                try:
+                    data = (task / "stat").read_bytes()
+                except OSError:
+                    continue
+                end = data.rindex(b")")
+                running += data[end + 2 : end + 3] == b"R"
+            self.counts[running] += 1
+            time.sleep(0.002)
+
+
+def _measure(run: Callable[[], int]) -> dict[str, Any]:
+    load = os.getloadavg()[0]
+    cpu, wall = time.process_time(), time.perf_counter()
+    with _Sampler() as sampler:
+        items = run()
+    wall = time.perf_counter() - wall
+    return {
+        "items": items,
+        "wall_s": wall,
+        "cpu_s": time.process_time() - cpu,
+        "running": {str(k): v for k, v in sorted(sampler.counts.items())},
+        "load": load,
+    }
+
+
+def _pyarrow_rows(path: Path, n_threads: int, columns: list[str]) -> int:
+    import pyarrow as pa
+    import pyarrow.csv as pacsv
+
+    pa.set_cpu_count(n_threads)
+    pa.set_io_thread_count(n_threads)
+    read = pacsv.ReadOptions(column_names=columns, use_threads=True)
+    parse = pacsv.ParseOptions(delimiter=" ")
+    return int(pacsv.read_csv(path, read_options=read, parse_options=parse).num_rows)
+
+
+def child(job: dict[str, Any]) -> dict[str, Any]:
+    """One measurement in this (fresh, capped) process."""
+    from semantic3d.core.threads import set_thread_limit
+
+    n = int(job["threads"])
+    set_thread_limit(n)
+    path, work = job["path"], Path(job["work"])
+    scan = Path(job["scan"])
+    if path == "iter_points":
+        from semantic3d.io import iter_ascii_points
+
+        def run() -> int:
+            return sum(chunk.n_points for chunk in iter_ascii_points(scan))
+
+        run_small: Callable[[], int] = lambda: sum(  # noqa: E731
+            c.n_points for c in iter_ascii_points(Path(job["small"]))
+        )
+        peer: Callable[[], int] | None = lambda: _pyarrow_rows(scan, n, list("xyzirgb"))  # noqa: E731
+    elif path == "read_labels":
+        from semantic3d.io import read_labels
+
+        labels = Path(job["labels"])  # the scan's labels, N_EVALUATED_SCANS times over
+
+        def run() -> int:
+            return int(read_labels(labels).size)
+
+        run_small = lambda: int(read_labels(Path(job["small"]).with_suffix(".labels")).size)  # noqa: E731
+        peer = lambda: _pyarrow_rows(labels, n, ["label"])  # noqa: E731
+    elif path == "simulate":
+        from semantic3d.datasets.simulator import simulate
+
+        def run() -> int:
+            out = work / f"simulate{n}"
+            return simulate("street", out=out, n_points=int(job["points"]), seed=2).n_points
+
+        run_small = lambda: simulate("street", out=work / f"warm{n}", n_points=20_000).n_points  # noqa: E731
+        peer = None
+    elif path == "predict":
+        from semantic3d.baselines.covariance.persistence import load_model
+        from semantic3d.baselines.covariance.predict import predict_scan
+
+        model = load_model(job["model"])
+
+        def run() -> int:
+            out = work / f"predict{n}.labels"
+            return predict_scan(model, scan, out_path=out, workdir=work, overwrite=True).n_points
+
+        def run_small() -> int:
+            out = work / f"warm{n}.labels"
+            small = Path(job["small"])
+            return predict_scan(model, small, out_path=out, workdir=work, overwrite=True).n_points
+
+        peer = None
+    elif path == "train":
+        from semantic3d.baselines.covariance.config import CovarianceConfig
+        from semantic3d.baselines.covariance.training import (
+            find_labelled_scans,
+            train_covariance_model,
+        )
+
+        scans = find_labelled_scans(Path(job["training"]))
+
+        def run() -> int:
+            model = train_covariance_model(scans, config=CovarianceConfig())
+            return sum(model.n_training_points.values())
+
+        def run_small() -> int:  # the kernels and scikit-learn loaded
+            return len(
+                train_covariance_model(scans[:2], config=CovarianceConfig()).classifier.classes_
+            )
+
+        peer = None
+    elif path == "evaluate":
+        from semantic3d.evaluation import custom_challenge, evaluate_submission
+
+        truth, predicted = work / "truth", work / "submission"
+
+        def run() -> int:
+            evaluate_submission(predicted, challenge=custom_challenge(truth))
+            return 4 * N_EVALUATED_SCANS * int(job["scan_points"])  # label pairs read
+
+        run_small = None
+        peer = None
+    else:
+        raise SystemExit(f"unknown path {path}")
+    if run_small is not None:
+        run_small()
+    else:
+        run()
+    repeat = max(1, int(job.get("repeat", 1)))
+    result = {"ours": min((_measure(run) for _ in range(repeat)), key=lambda m: m["wall_s"])}
+    if peer is not None:
+        peer()
+        result["peer"] = min((_measure(peer) for _ in range(repeat)), key=lambda m: m["wall_s"])
+    return result
+
+
+# --- the driver ---------------------------------------------------------------------------
+
+
+def _run_child(job: dict[str, Any]) -> dict[str, Any]:
+    n = str(job["threads"])
+    env = dict(os.environ, NUMBA_NUM_THREADS=n, OMP_NUM_THREADS=n, OMP_WAIT_POLICY="passive")
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT / "src"), env.get("PYTHONPATH")]))
+    done = subprocess.run(
+        [sys.executable, __file__, "--child", json.dumps(job)],
+        env=env,
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    if done.returncode:
+        raise SystemExit(f"{job['path']} on {n} threads failed:\n{done.stderr[-3000:]}")
+    result: dict[str, Any] = json.loads(done.stdout.strip().splitlines()[-1])
+    return result
+
+
+def amdahl(speedups: dict[int, float]) -> float | None:
+    """Serial fraction ``s`` minimising the squared error of ``1/S(n) = s + (1 - s)/n``."""
+    points = [(n, s) for n, s in speedups.items() if n > 1]
+    if not points:
+        return None
+    num = sum((1 - 1 / n) * (1 / s - 1 / n) for n, s in points)
+    den = sum((1 - 1 / n) ** 2 for n, _ in points)
+    return min(1.0, max(0.0, num / den))
+
+
+def profile_fraction(running: dict[str, int], n_threads: int) -> float:
+    """Serial fraction from thread samples of an ``n_threads`` run: samples with at most one
+    thread running, over the samples weighted by the threads they kept busy."""
+    counts = {int(k): v for k, v in running.items()}
+    serial = counts.get(0, 0) + counts.get(1, 0)
+    weighted = sum(v * max(1, min(k, n_threads)) for k, v in counts.items())
+    return serial / weighted if weighted else float("nan")
+
+
+def _prepare(args: argparse.Namespace, work: Path) -> dict[str, Any]:
+    """The scans, the training data, a model and the submission every run reads."""
+    from semantic3d.baselines.covariance.config import CovarianceConfig
+    from semantic3d.baselines.covariance.persistence import save_model
+    from semantic3d.baselines.covariance.training import (
+        find_labelled_scans,
+        train_covariance_model,
+    )
+    from semantic3d.datasets.simulator import simulate
+
+    scan = simulate("street", out=work / "scan", n_points=args.points, seed=1).scans[0]
+    small = simulate("street", out=work / "small", n_points=30_000, seed=3).scans[0]
+    training = Path(args.oakland)
+    if not training.is_dir():
+        training = work / "training"
+        for scene, seed in (("street", 4), ("village", 4), ("square", 4)):
+            made = simulate(scene, out=work / f"t{scene}", n_points=200_000, seed=seed).scans[0]
+            training.mkdir(exist_ok=True)
+            made.points_path.rename(training / f"{scene}.txt")
+            made.labels_path.rename(training / f"{scene}.labels")
+    model = train_covariance_model(find_labelled_scans(training), config=CovarianceConfig())
+    # the one scan is labelled tile by tile whatever its size (the path of a large scan)
+    tiled = dataclasses.replace(
+        model.config,
+        prediction=dataclasses.replace(model.config.prediction, max_points_in_memory=0),
+    )
+    save_model(dataclasses.replace(model, config=tiled), work / "model.s3dm")
+    (work / "labels").mkdir()
+    labels, per_scan = work / "labels" / "many.labels", work / "labels" / "scan.labels"
+    for path, copies in ((labels, 4 * N_EVALUATED_SCANS), (per_scan, 4)):
+        with path.open("wb") as stream:
+            for _ in range(copies):
+                stream.write(scan.labels_path.read_bytes())
+    for folder in ("truth", "submission"):
+        (work / folder).mkdir()
+        for number in range(N_EVALUATED_SCANS):
+            os.link(per_scan, work / folder / f"scan{number}.labels")
+    return {
+        "scan": str(scan.points_path),
+        "small": str(small.points_path),
+        "training": str(training),
+        "model": str(work / "model.s3dm"),
+        "points": args.points,
+        "scan_points": scan.n_points,
+        "labels": str(labels),
+        "work": str(work),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--child", help=argparse.SUPPRESS)
+    parser.add_argument("--points", type=int, default=10_000_000)
+    parser.add_argument("--threads", type=int, nargs="+", default=[1, 2, 4, 8, 16])
+    parser.add_argument("--paths", nargs="+", default=list(PATHS), choices=PATHS)
+    parser.add_argument("--oakland", default=str(ROOT.parent / "shared" / "data" / "oakland"))
+    parser.add_argument("--repeat", type=int, default=3, help="Best of this many runs.")
+    parser.add_argument("--quick", action="store_true", help="1 M points, best of 2.")
+    parser.add_argument("--workdir", default=None, help="Scratch folder (default: /tmp).")
+    args = parser.parse_args()
+    if args.child:
+        print(json.dumps(child(json.loads(args.child))))
+        return
+    if args.quick:
+        args.points, args.repeat = 1_000_000, 2
+    sys.path.insert(0, str(ROOT / "src"))
+    from semantic3d.core.threads import available_cores
+
+    cores = available_cores()
+    counts = sorted({n for n in args.threads if n <= cores})
+    print(
+        f"{cores} cores, threads {counts}, {args.points:,} points; "
+        f"load average {os.getloadavg()[0]:.2f} before preparing"
+    )
+    rows: list[dict[str, Any]] = []
+    summary: dict[str, dict[str, Any]] = {}
+    with tempfile.TemporaryDirectory(prefix="bench-scaling-", dir=args.workdir) as scratch:
+        work = Path(scratch)
+        shared = _prepare(args, work)
+        header = (
+            f"{'path':<12} {'thr':>3} {'M items/s':>10} {'wall s':>8} {'CPU s':>8} "
+            f"{'running':>7} {'peer M/s':>9} {'x peer':>7} {'CPU/peer':>8} {'load':>5}"
+        )
+        print(header)
+        for path in args.paths:
+            rates: dict[int, float] = {}
+            for n in counts:
+                job = {**shared, "path": path, "threads": n, "repeat": args.repeat}
+                result = _run_child(job)
+                ours = result["ours"]
+                rate = ours["items"] / ours["wall_s"]
+                rates[n] = rate
+                samples = {int(k): v for k, v in ours["running"].items()}
+                mean = sum(k * v for k, v in samples.items()) / max(1, sum(samples.values()))
+                peer = result.get("peer")
+                peer_rate = peer["items"] / peer["wall_s"] if peer else None
+                cpu_ratio = ours["cpu_s"] / peer["cpu_s"] if peer and peer["cpu_s"] else None
+                row = {
+                    "path": path,
+                    "threads": n,
+                    "rate": rate,
+                    "mean_running": mean,
+                    "peer": PEERS.get(path),
+                    "peer_rate": peer_rate,
+                    **{key: ours[key] for key in ("items", "wall_s", "cpu_s", "running", "load")},
+                }
+                if peer:
+                    row["peer_wall_s"] = peer["wall_s"]
+                    row["peer_cpu_s"] = peer["cpu_s"]
+                rows.append(row)
+                print(
+                    f"{path:<12} {n:>3} {rate / 1e6:>10.3f} {ours['wall_s']:>8.2f} "
+                    f"{ours['cpu_s']:>8.2f} {mean:>7.2f} "
+                    f"{'' if peer_rate is None else f'{peer_rate / 1e6:9.3f}':>9} "
+                    f"{'' if peer_rate is None else f'{rate / peer_rate:7.2f}':>7} "
+                    f"{'' if cpu_ratio is None else f'{cpu_ratio:8.2f}':>8} "
+                    f"{ours['load']:>5.2f}",
+                    flush=True,
+                )
+            speedups = {n: rates[n] / rates[counts[0]] for n in counts} if counts[0] == 1 else {}
+            s = amdahl(speedups)
+            two = next((r for r in rows if r["path"] == path and r["threads"] == 2), None)
+            summary[path] = {
+                "speedups": speedups,
+                "amdahl_serial_fraction": s,
+                "predicted_speedup_16": None if s is None else 1 / (s + (1 - s) / 16),
+                "predicted_rate_16": None if s is None else rates[1] / (s + (1 - s) / 16),
+                "profile_serial_fraction_2": None
+                if two is None
+                else profile_fraction(two["running"], 2),
+            }
+    print("\nAmdahl fits (speed-up over 1 thread; 16-thread figures predicted from s)")
+    for path, fit in summary.items():
+        s, p = fit["amdahl_serial_fraction"], fit["profile_serial_fraction_2"]
+        if s is None:
+            continue
+        print(
+            f"{path:<12} s = {s:.3f} (thread samples: {p:.3f}); speed-ups "
+            + ", ".join(f"{n}: {v:.2f}" for n, v in fit["speedups"].items())
+            + f"; on 16 threads {fit['predicted_speedup_16']:.1f}x, "
+            f"{fit['predicted_rate_16'] / 1e6:.3f} M/s"
+        )
+    OUT.mkdir(parents=True, exist_ok=True)
+    report = {
+        "cores": cores,
+        "points": args.points,
+        "threads": counts,
+        "load_average_after": os.getloadavg(),
+        "rows": rows,
+        "summary": summary,
+    }
+    (OUT / "bench_scaling.json").write_text(json.dumps(report, indent=2) + "\n")
+    print(f"wrote {OUT / 'bench_scaling.json'}")
+
+
+if __name__ == "__main__":
+    main()

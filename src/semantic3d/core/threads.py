@@ -1,0 +1,458 @@
+"""How many threads the package computes with: every core by default, fewer when asked.
+
+One number, the *thread budget* (:func:`thread_budget`), sizes everything that runs in
+parallel: numba's parallel kernels, the package's thread pools (segments of a text file,
+tiles of a scan, scans of a submission), scikit-learn's forest and the BLAS / OpenMP pools
+of compiled libraries. It is, first found:
+
+1. the limit set by :func:`set_thread_limit` (the command line's ``--threads N``);
+2. the smallest positive ``NUMBA_NUM_THREADS`` or ``OMP_NUM_THREADS`` of the environment;
+3. the cores this process may run on (its CPU affinity).
+
+Results never depend on it: every parallel path of the package splits work into pieces
+whose results are combined in a fixed order, so any budget gives the same bytes (tested).
+
+numba keeps its thread count per calling thread, so a thread pool of the package sets it
+in each worker (:func:`map_in_threads`); :func:`numba_threads` does it for one block of
+work. Nothing here imports numba: it is configured only when something else loaded it.
+"""
+
+from __future__ import annotations
+
+import importlib
+import os
+import queue
+import sys
+import threading
+from collections import deque
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
+from contextlib import contextmanager, suppress
+from typing import TypeVar
+
+__all__ = [
+    "ENVIRONMENT_VARIABLES",
+    "available_cores",
+    "concurrent_kernels_supported",
+    "current_thread_limit",
+    "iter_ahead",
+    "map_in_threads",
+    "numba_threads",
+    "serial_section",
+    "set_thread_limit",
+    "thread_budget",
+    "thread_limit",
+]
+
+T = TypeVar("T")
+R = TypeVar("R")
+
+ENVIRONMENT_VARIABLES = ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS")
+"""Variables that cap the budget when no limit was set (the smallest positive one wins)."""
+
+_POOL_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+"""Set for libraries not loaded yet when a limit is set (numba's is set apart)."""
+
+_limit: int | None = None
+_task = threading.local()  # a task's share of the budget (see _task_budget)
+_saved_environment: dict[str, str | None] = {}
+
+
+def available_cores() -> int:
+    """Cores this process may run on (its affinity mask where the system has one)."""
+    if hasattr(os, "sched_getaffinity"):
+        return max(1, len(os.sched_getaffinity(0)))
+    return max(1, os.cpu_count() or 1)
+
+
+def _environment_limit() -> int | None:
+    values = []
+    for name in ENVIRONMENT_VARIABLES:
+        text = os.environ.get(name, "").strip()
+        if text.isdigit() and int(text) > 0:
+            values.append(int(text))
+    return min(values) if values else None
+
+
+def thread_budget() -> int:
+    """Threads the package's parallel work may use now (see the module docs); inside a
+    task of :func:`map_in_threads` (or a :func:`numba_threads` block), the task's share."""
+    share: int | None = getattr(_task, "budget", None)
+    if share is not None:
+        return share
+    if _limit is not None:
+        return _limit
+    found = _environment_limit()
+    return found if found is not None else available_cores()
+
+
+def current_thread_limit() -> int | None:
+    """The limit :func:`set_thread_limit` set (None: none)."""
+    return _limit
+
+
+def set_thread_limit(n_threads: int | None) -> int:
+    """Cap this process's compute threads at ``n_threads`` (None: the default again).
+
+    Applies at once where it can: numba in the calling thread, the BLAS / OpenMP pools of
+    loaded libraries (through threadpoolctl when installed), and the environment of
+    libraries loaded later (``NUMBA_NUM_THREADS`` only while numba is not loaded, so that
+    its pool is sized for the limit; numba then keeps that pool, and the variable, for the
+    life of the process). Returns the budget now in force.
+
+    Raises:
+        ValueError: ``n_threads`` is below 1.
+    """
+    global _limit
+    if n_threads is not None and (isinstance(n_threads, bool) or int(n_threads) < 1):
+        raise ValueError(f"threads: expected at least 1, found {n_threads!r}")
+    _limit = None if n_threads is None else int(n_threads)
+    if _limit is None:
+        _restore_environment()
+    else:
+        names = [*_POOL_VARIABLES, *(() if "numba" in sys.modules else ("NUMBA_NUM_THREADS",))]
+        for name in names:
+            _saved_environment.setdefault(name, os.environ.get(name))
+            os.environ[name] = str(_limit)
+    budget = thread_budget()
+    _set_numba_threads(budget)
+    if "threadpoolctl" in sys.modules or _limit is not None:
+        _limit_native_pools(budget)
+    return budget
+
+
+def _restore_environment() -> None:
+    for name, value in _saved_environment.items():
+        if name == "NUMBA_NUM_THREADS" and "numba" in sys.modules:
+            # numba sized its pool from it and rereads it on every compilation: another
+            # value now would stop it compiling; its pool cannot grow anyway
+            continue
+        if value is None:
+            os.environ.pop(name, None)
+        else:
+            os.environ[name] = value
+    _saved_environment.clear()
+
+
+def _set_numba_threads_here(n_threads: int) -> None:
+    numba = sys.modules.get("numba")
+    if numba is not None and hasattr(numba, "set_num_threads"):
+        numba.set_num_threads(max(1, min(n_threads, int(numba.config.NUMBA_NUM_THREADS))))
+
+
+def _set_numba_threads(n_threads: int) -> None:
+    numba = sys.modules.get("numba")
+    if numba is None or not hasattr(numba, "set_num_threads"):
+        return
+    numba.set_num_threads(max(1, min(n_threads, int(numba.config.NUMBA_NUM_THREADS))))
+
+
+def _limit_native_pools(n_threads: int) -> None:
+    torch = sys.modules.get("torch")
+    if torch is not None:
+        torch.set_num_threads(n_threads)
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # optional: environment variables cover libraries loaded later
+        return
+    threadpool_limits(n_threads)
+
+
+@contextmanager
+def numba_threads(n_threads: int | None = None) -> Iterator[int]:
+    """Run a block with numba's kernels on ``n_threads`` (default the budget) in this thread.
+
+    numba keeps the count per thread; the previous one is restored on exit. Yields the
+    count in force (never above the size of numba's pool).
+    """
+    wanted = thread_budget() if n_threads is None else max(1, int(n_threads))
+    numba = sys.modules.get("numba")
+    if numba is None or not hasattr(numba, "get_num_threads"):
+        with _task_budget(wanted):
+            yield wanted
+        return
+    before = numba.get_num_threads()
+    count = max(1, min(wanted, int(numba.config.NUMBA_NUM_THREADS)))
+    numba.set_num_threads(count)
+    try:
+        with _task_budget(wanted):
+            yield count
+    finally:
+        numba.set_num_threads(before)
+
+
+@contextmanager
+def _task_budget(n_threads: int) -> Iterator[None]:
+    """Within the block, :func:`thread_budget` in this thread is ``n_threads`` (work that
+    fans out again from a task uses the task's share, not the whole budget)."""
+    before = getattr(_task, "budget", None)
+    _task.budget = n_threads
+    try:
+        yield
+    finally:
+        _task.budget = before
+
+
+def map_in_threads(
+    function: Callable[[T], R],
+    items: Iterable[T],
+    *,
+    n_threads: int | None = None,
+    ordered: bool = True,
+    numba_threads_per_task: Callable[[T], int] | int = 1,
+    max_pending: int | None = None,
+    name: str = "semantic3d",
+) -> Iterator[R]:
+    """``function(item)`` for every item on a pool of ``n_threads`` (default the budget).
+
+    Results come in input order (``ordered``) or as tasks finish. At most ``max_pending``
+    tasks (default twice the threads) are submitted or waiting to be yielded at once, so
+    memory is bounded by them. Each task runs with numba on ``numba_threads_per_task``
+    threads (a number, or a function of the item): 1 where tasks alone fill the cores. A
+    task starts only when its threads are free, so the tasks running at once never use
+    more than ``n_threads`` threads together.
+    The first exception raised by a task is raised here (the earliest in input order when
+    ``ordered``); tasks not started are cancelled and running ones are waited for, also
+    when the caller stops iterating. With one thread everything runs in the calling thread
+    (same results).
+    """
+    n_threads = thread_budget() if n_threads is None else max(1, int(n_threads))
+    iterator = iter(items)
+    if n_threads > 1 and not concurrent_kernels_supported():
+        for item in iterator:  # one task at a time, each with every thread
+            with numba_threads(n_threads):
+                yield function(item)
+        return
+    if n_threads == 1:
+        for item in iterator:
+            with numba_threads(_task_threads(numba_threads_per_task, item, 1)):
+                yield function(item)
+        return
+    limit = max(n_threads, 2 * n_threads if max_pending is None else int(max_pending))
+    tokens = _Tokens(n_threads)
+
+    def run(item: T, ticket: int) -> R:
+        count = _task_threads(numba_threads_per_task, item, n_threads)
+        with tokens.held(count, ticket), numba_threads(count):
+            return function(item)
+
+    pool = ThreadPoolExecutor(max_workers=n_threads, thread_name_prefix=name)
+    pending: deque[Future[R]] = deque()
+    try:
+        exhausted = False
+        while True:
+            while not exhausted and len(pending) < limit:
+                try:
+                    item = next(iterator)
+                except StopIteration:
+                    exhausted = True
+                    break
+                pending.append(pool.submit(run, item, tokens.ticket()))
+            if not pending:
+                return
+            if ordered:
+                yield pending.popleft().result()
+                continue
+            done, _ = wait(pending, return_when=FIRST_COMPLETED)
+            for future in [f for f in pending if f in done]:
+                pending.remove(future)
+                yield future.result()
+    finally:
+        for future in pending:
+            future.cancel()
+        tokens.close()
+        pool.shutdown(wait=True)
+
+
+_LAYER_MODULES = ("numba.np.ufunc.tbbpool", "numba.np.ufunc.omppool")
+
+
+def concurrent_kernels_supported() -> bool:
+    """Whether numba's parallel kernels may be launched from several threads at once: its
+    ``tbb`` and ``omp`` threading layers allow it, its ``workqueue`` fallback (no TBB, no
+    OpenMP runtime) aborts the process. Without it the thread maps run one task at a
+    time (with every thread). True while numba is not loaded (nothing to launch)."""
+    numba = sys.modules.get("numba")
+    if numba is None:
+        return True
+    try:
+        return str(numba.threading_layer()) != "workqueue"
+    except ValueError:  # no parallel kernel launched yet: the layer numba will choose
+        layer = str(numba.config.THREADING_LAYER)
+        if layer == "workqueue":
+            return False
+        for module in _LAYER_MODULES:
+            try:
+                importlib.import_module(module)
+            except ImportError:
+                continue
+            return True
+        return False
+
+
+class _Tokens:
+    """``n`` threads' worth of tokens; a task holds as many as it runs threads. Tasks take
+    them in the order they were submitted (a large task is not starved by small ones)."""
+
+    def __init__(self, n: int) -> None:
+        self.free = n
+        self.turn = 0
+        self.tickets = 0
+        self.open = True
+        self.condition = threading.Condition()
+
+    def close(self) -> None:
+        """Let waiting tasks run at once (tasks cancelled before them never take a turn)."""
+        with self.condition:
+            self.open = False
+            self.condition.notify_all()
+
+    def ticket(self) -> int:
+        """The next task's place in line (taken when it is submitted)."""
+        self.tickets += 1
+        return self.tickets - 1
+
+    @contextmanager
+    def held(self, count: int, ticket: int) -> Iterator[None]:
+        """Hold ``count`` tokens for the block (the task's thread may give some back for
+        a while: :func:`serial_section`)."""
+        with self.condition:
+            self.condition.wait_for(
+                lambda: not self.open or (self.turn == ticket and self.free >= count)
+            )
+            self.free -= count
+            self.turn += 1
+            self.condition.notify_all()
+        _task.held = [self, count]
+        try:
+            yield
+        finally:
+            held = _task.held
+            _task.held = None
+            self.give_back(held[1])
+
+    def give_back(self, count: int) -> None:
+        with self.condition:
+            self.free += count
+            self.condition.notify_all()
+
+    def take_up_to(self, count: int) -> int:
+        """Take at most ``count`` free tokens without waiting; return how many."""
+        with self.condition:
+            taken = max(0, min(count, self.free))
+            self.free -= taken
+            return taken
+
+
+@contextmanager
+def serial_section() -> Iterator[None]:
+    """A block of a thread-map task that runs on one thread (a graph cut, Python steps).
+
+    The task's other threads go back to the map for the block, so another task can use
+    them, and are taken again afterwards as far as they are free (the task goes on with
+    fewer kernel threads otherwise: never more threads than the map's at once). Outside a
+    map's task nothing changes. Results do not depend on it.
+    """
+    held = getattr(_task, "held", None)
+    if held is None or held[1] <= 1:
+        yield
+        return
+    tokens, count = held
+    tokens.give_back(count - 1)
+    held[1] = 1
+    try:
+        with numba_threads(1):
+            yield
+    finally:
+        held[1] = 1 + tokens.take_up_to(count - 1)
+        _set_numba_threads_here(held[1])
+        _task.budget = held[1]
+
+
+def _task_threads(per_task: Callable[[T], int] | int, item: T, ceiling: int) -> int:
+    wanted = per_task(item) if callable(per_task) else per_task
+    return max(1, min(int(wanted), max(ceiling, 1)))
+
+
+def iter_ahead(
+    items: Iterable[T],
+    *,
+    depth: int = 1,
+    consumer_threads: int = 1,
+    min_threads: int = 2,
+    name: str = "semantic3d-ahead",
+) -> Iterator[T]:
+    """The items of ``items``, produced on a thread of their own up to ``depth`` ahead.
+
+    The producer's work (parsing a file, casting rays) then overlaps the consumer's
+    (binning, formatting, writing); the items and their order are those of ``items``. The
+    budget is split: the consumer's numba kernels run on ``consumer_threads`` threads
+    while it handles an item, the producer's on the rest. With a budget below
+    ``min_threads`` nothing overlaps (the items are produced in the caller's thread, each
+    side on the whole budget in turn: for a producer far heavier than its consumer, two
+    threads are better spent both on the producer). An exception of the
+    producer is raised here when its turn comes; when the consumer stops early (or
+    fails), the producer stops after its current item.
+    """
+    slots: queue.Queue[tuple[int, object]] = queue.Queue(maxsize=max(1, depth))
+    stop = threading.Event()
+
+    budget = thread_budget()  # the caller's (a task's share inside a task)
+    if budget < max(2, min_threads) or not concurrent_kernels_supported():  # in turn
+        yield from items
+        return
+    consumer_threads = max(1, min(int(consumer_threads), budget - 1))
+    iterator = iter(items)
+
+    def produce() -> None:
+        try:
+            with numba_threads(budget - consumer_threads):
+                for item in iterator:
+                    slots.put((_ITEM, item))
+                    if stop.is_set():
+                        break
+                else:
+                    slots.put((_DONE, None))
+        except BaseException as exc:  # handed to the consumer
+            slots.put((_FAILED, exc))
+        finally:
+            if stop.is_set():  # the consumer left: release the producer's resources here
+                close = getattr(iterator, "close", None)
+                if close is not None:
+                    close()
+
+    thread = threading.Thread(target=produce, name=name, daemon=True)
+    thread.start()
+    try:
+        while True:
+            kind, value = slots.get()
+            if kind == _DONE:
+                return
+            if kind == _FAILED:
+                assert isinstance(value, BaseException)
+                raise value
+            with numba_threads(consumer_threads):  # the consumer's share while it works
+                yield value  # type: ignore[misc]
+    finally:
+        stop.set()
+        while thread.is_alive():  # unblock a producer waiting for a free slot
+            with suppress(queue.Empty):
+                slots.get(timeout=0.05)
+        thread.join()
+
+
+_ITEM, _DONE, _FAILED = range(3)
+
+
+@contextmanager
+def thread_limit(n_threads: int | None) -> Iterator[int]:
+    """:func:`set_thread_limit` for the block; the previous limit is back afterwards.
+
+    Yields the budget in force inside the block.
+    """
+    previous = _limit
+    budget = set_thread_limit(n_threads)
+    try:
+        yield budget
+    finally:
+        set_thread_limit(previous)

@@ -1,0 +1,186 @@
+"""The thread budget: its sources, the thread map and read-ahead built on it, and the cap
+of ``--threads`` as the command line honours it (threads counted while commands run)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import threading
+import time
+from collections import Counter
+from pathlib import Path
+
+import pytest
+
+from semantic3d.core import threads
+from semantic3d.core.threads import (
+    iter_ahead,
+    map_in_threads,
+    numba_threads,
+    set_thread_limit,
+    thread_budget,
+    thread_limit,
+)
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def test_the_budget_is_the_limit_else_the_environment_else_the_cores(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.delenv("NUMBA_NUM_THREADS", raising=False)
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    assert thread_budget() == threads.available_cores()
+    monkeypatch.setenv("OMP_NUM_THREADS", "3")
+    monkeypatch.setenv("NUMBA_NUM_THREADS", "5")
+    assert thread_budget() == 3
+    with thread_limit(7) as budget:
+        assert budget == thread_budget() == 7
+        assert os.environ["OMP_NUM_THREADS"] == "7"
+    assert thread_budget() == 3
+    assert os.environ["OMP_NUM_THREADS"] == "3"
+    with pytest.raises(ValueError, match="expected at least 1, found 0"):
+        set_thread_limit(0)
+
+
+def test_a_task_sees_its_share_of_the_budget() -> None:
+    with thread_limit(4), numba_threads(2) as count:
+        assert thread_budget() == 2
+        assert count >= 1
+    seen = list(map_in_threads(lambda _: thread_budget(), range(3), n_threads=4))
+    assert seen == [1, 1, 1]
+
+
+def test_the_map_keeps_order_or_completion_and_raises_the_first_error() -> None:
+    def slow_square(x: int) -> int:
+        time.sleep(0.001 * (7 - x % 7))
+        return x * x
+
+    assert list(map_in_threads(slow_square, range(20), n_threads=3)) == [x * x for x in range(20)]
+    unordered = list(map_in_threads(slow_square, range(20), n_threads=3, ordered=False))
+    assert sorted(unordered) == [x * x for x in range(20)]
+
+    def fail_at_five(x: int) -> int:
+        if x >= 5:
+            raise ValueError(f"item {x}")
+        return x
+
+    with pytest.raises(ValueError, match="item 5"):
+        list(map_in_threads(fail_at_five, range(20), n_threads=3))
+
+
+def test_tasks_running_at_once_never_hold_more_threads_than_the_map() -> None:
+    lock = threading.Lock()
+    running = [0, 0]  # now, most
+
+    def task(item: int) -> int:
+        with lock:
+            running[0] += 3
+            running[1] = max(running[1], running[0])
+        time.sleep(0.005)
+        with lock:
+            running[0] -= 3
+        return item
+
+    done = list(map_in_threads(task, range(12), n_threads=4, numba_threads_per_task=3))
+    assert done == list(range(12))
+    assert running[1] == 3  # one task of 3 threads at a time on a map of 4
+
+
+def test_read_ahead_gives_the_items_in_order_and_stops_with_the_consumer() -> None:
+    produced: list[int] = []
+
+    def items() -> object:
+        for x in range(100):
+            produced.append(x)
+            yield x
+
+    with thread_limit(2):
+        assert list(iter_ahead(range(50))) == list(range(50))
+        ahead = iter_ahead(items(), depth=2)
+        assert [next(ahead) for _ in range(3)] == [0, 1, 2]
+        ahead.close()  # type: ignore[attr-defined]
+    assert len(produced) < 100
+
+    def broken() -> object:
+        yield 1
+        raise OSError("disk gone")
+
+    with thread_limit(2), pytest.raises(OSError, match="disk gone"):
+        list(iter_ahead(broken()))
+
+
+def test_one_thread_starts_no_thread() -> None:
+    before = threading.active_count()
+    seen: list[int] = []
+    with thread_limit(1):
+        for _ in iter_ahead(range(5)):
+            seen.append(threading.active_count())
+        results = list(map_in_threads(lambda x: threading.active_count(), range(5)))
+    assert seen == [before] * 5
+    assert results == [before] * 5
+
+
+_CONFIG = """
+[features]
+base_voxel_size_m = 0.1
+n_levels = 6
+[forest]
+n_estimators = 10
+max_depth = 10
+[sampling]
+points_per_class = 300
+[prediction]
+tile_size_m = 6.4
+max_points_in_memory = 0
+chunk_size = 20000
+"""
+
+
+def _census(commands: list[list[str]], tmp_path: Path) -> Counter[int]:
+    env = {
+        key: value for key, value in os.environ.items() if key not in threads.ENVIRONMENT_VARIABLES
+    }
+    env.update(PYTHONPATH=str(ROOT / "src"), OMP_WAIT_POLICY="passive")
+    result = subprocess.run(
+        [sys.executable, str(Path(__file__).with_name("census.py")), json.dumps(commands)],
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=tmp_path,
+        stdin=subprocess.DEVNULL,
+        check=True,
+        timeout=600,
+    )
+    return Counter(json.loads(result.stdout.strip().splitlines()[-1]))
+
+
+def _within(counts: Counter[int], cap: int) -> None:
+    """Threads running at once stay within ``cap``: on average, and but for one sample in
+    ten (the thread that hands work out and takes results back wakes between tasks)."""
+    total = sum(counts.values())
+    assert total > 100, counts
+    assert sum(n for running, n in counts.items() if running > cap) < total / 10, counts
+    assert sum(running * n for running, n in counts.items()) / total <= cap + 0.05, counts
+
+
+@pytest.mark.slow
+def test_threads_computing_at_once_stay_within_the_cap(tmp_path: Path) -> None:
+    """simulate, train, predict (tiled) and evaluate with --threads 1, then predict with
+    --threads 2: the process's threads running or ready to run, sampled every 2 ms."""
+    (tmp_path / "config.toml").write_text(_CONFIG)
+    commands = [
+        ["simulate", "--scene", "street", "--points", "80000", "--out", "scans"],
+        ["simulate", "--scene", "village", "--points", "40000", "--out", "more"],
+        ["baseline", "covariance", "train", "--data", "scans", "--out", "model.s3dm"],
+        ["baseline", "covariance", "predict", "--model", "model.s3dm", "--data", "more"],
+        ["evaluate", "--gt", "more", "--pred", "predictions"],
+    ]
+    commands[2] += ["--config", "config.toml"]
+    _within(_census([[*command, "--threads", "1"] for command in commands], tmp_path), 1)
+    predict = [*commands[3], "--out", "again", "--threads", "2"]
+    counts = _census([predict], tmp_path)
+    _within(counts, 2)
+    assert counts[2] > 0  # and two threads do compute at once

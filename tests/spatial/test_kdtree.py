@@ -1,0 +1,67 @@
+"""The k-d tree against a brute-force reference: the k smallest (float32 distance, index)
+pairs, with nanoflann's distance arithmetic, whatever the thread count."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from semantic3d.core.errors import ShapeError
+from semantic3d.core.threads import thread_limit
+from semantic3d.spatial.kdtree import KdTree
+
+
+def _brute_force(points: np.ndarray, queries: np.ndarray, k: int) -> tuple[np.ndarray, ...]:
+    difference = queries[:, None, :] - points[None, :, :]
+    squared = difference * difference
+    distance = (squared[..., 0] + squared[..., 1]) + squared[..., 2]  # float32, in that order
+    index = np.broadcast_to(np.arange(points.shape[0]), distance.shape)
+    order = np.lexsort((index, distance), axis=1)[:, :k]
+    return order, np.take_along_axis(distance, order, axis=1)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    n=st.integers(1, 300),
+    m=st.integers(1, 60),
+    k=st.integers(1, 25),
+    grid=st.sampled_from([0.0, 0.25, 1.0]),
+    seed=st.integers(0, 2**16),
+)
+def test_the_k_nearest_are_those_of_a_brute_force_search(
+    n: int, m: int, k: int, grid: float, seed: int
+) -> None:
+    rng = np.random.default_rng(seed)
+    points = (rng.random((n, 3)) * 4).astype(np.float32)
+    if grid:  # snapped to a grid: many equal distances, duplicated points
+        points = (np.round(points / grid) * grid).astype(np.float32)
+    queries = np.concatenate([points[: m // 2], (rng.random((m - m // 2, 3)) * 4)]).astype(
+        np.float32
+    )
+    k = min(k, n)
+    indices, squared = KdTree(points, leaf_size=4).query(queries, k=k)
+    expected_indices, expected_squared = _brute_force(points, queries, k)
+    assert np.array_equal(indices, expected_indices)
+    assert np.array_equal(squared, expected_squared)
+
+
+def test_results_do_not_depend_on_the_thread_count() -> None:
+    rng = np.random.default_rng(3)
+    points = np.round(rng.random((20_000, 3)) * 50, 1).astype(np.float32)
+    with thread_limit(1):
+        one = KdTree(points).query(points, k=11)
+    with thread_limit(4):
+        four = KdTree(points).query(points, k=11)
+    assert all(np.array_equal(a, b) for a, b in zip(one, four, strict=True))
+
+
+def test_bad_shapes_and_k_are_refused() -> None:
+    tree = KdTree(np.zeros((3, 3), np.float32))
+    with pytest.raises(ShapeError, match=r"expected \(n, 3\)"):
+        KdTree(np.zeros((3, 2)))
+    with pytest.raises(ShapeError, match=r"k: expected 1..3, found 4"):
+        tree.query(np.zeros((1, 3), np.float32), k=4)
+    with pytest.raises(ShapeError, match=r"queries: expected \(m, 3\)"):
+        tree.query(np.zeros(3, np.float32), k=1)
