@@ -179,3 +179,27 @@ def test_requeue_refuses_a_job_in_flight_and_unknown_ids(harness: Harness) -> No
         queue.requeue(harness.state.factory, submission_id)
     with pytest.raises(NotFoundError, match="no submission #999"):
         queue.requeue(harness.state.factory, 999)
+
+
+def test_an_evaluation_leaves_the_web_server_a_core(
+    tmp_path: Path, ground_truth_dir: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from semantic3d.core import threads
+    from semantic3d.server import worker
+
+    seen: list[int] = []
+    evaluate = worker.evaluate_submission
+
+    def recording(*args: object, **kwargs: object) -> object:
+        seen.append(threads.thread_budget())
+        return evaluate(*args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(worker, "evaluate_submission", recording)
+    monkeypatch.setattr(threads, "available_cores", lambda: 4)
+    for configured, expected in ((None, 3), (1, 1)):
+        settings = make_settings(tmp_path / str(configured), evaluation_threads=configured)
+        assert settings.evaluation_thread_budget == expected
+        for harness in build_harness(settings, ground_truth_dir):
+            _queue_one(harness)
+            assert harness.work()
+        assert seen[-1] == expected

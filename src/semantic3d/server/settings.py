@@ -113,6 +113,12 @@ class Settings(BaseSettings):
     job_time_limit_s: float = Field(default=6 * 3600.0, gt=0)
     job_max_attempts: int = Field(default=3, ge=1)
     worker_poll_s: float = Field(default=2.0, gt=0)
+    evaluation_threads: int | None = Field(
+        default=None,
+        ge=1,
+        description="Threads an evaluation may use; default all cores but one (at least "
+        "one), so an evaluation never takes the core the web server answers on.",
+    )
 
     login_max_failures: int = Field(
         default=5, ge=1, description="Failed logins per account from one client address."
@@ -164,6 +170,15 @@ class Settings(BaseSettings):
         return SubmissionLimits(
             max_member_bytes=self.max_member_bytes, max_total_bytes=self.max_inflated_bytes
         )
+
+    @property
+    def evaluation_thread_budget(self) -> int:
+        """``evaluation_threads``, or all cores but one (at least one)."""
+        from semantic3d.core.threads import available_cores
+
+        if self.evaluation_threads is not None:
+            return self.evaluation_threads
+        return max(1, available_cores() - 1)
 
     @property
     def uploads_dir(self) -> Path:

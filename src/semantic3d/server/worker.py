@@ -17,6 +17,7 @@ import time
 from sqlalchemy.orm import Session, sessionmaker
 
 from semantic3d.core.errors import Semantic3DError
+from semantic3d.core.threads import thread_limit
 from semantic3d.evaluation import evaluate_submission
 from semantic3d.server.models import Submission
 from semantic3d.server.services import queue
@@ -144,9 +145,10 @@ class Worker:
 
         try:
             challenge = self.cache.get(challenge_row)
-            result = evaluate_submission(
-                path, challenge=challenge, method=method, progress=progress
-            )
+            with thread_limit(self.settings.evaluation_thread_budget):
+                result = evaluate_submission(
+                    path, challenge=challenge, method=method, progress=progress
+                )
         except LeaseLostError:
             heartbeat.stop()
             if not heartbeat.lost:
