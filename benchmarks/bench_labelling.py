@@ -15,11 +15,17 @@ beforehand and timed separately), each part in a fresh process:
 2. ``browser``: ``semantic3d label`` as a subprocess (the real server, uvicorn) and Debian's
    Chromium through Playwright with software WebGL (SwiftShader): time to the first picture
    and until the budget is loaded; per point budget (0.25 / 0.5 / 1 / 2 M) the frame times
-   while orbiting 60 frames, with the adaptive moving budget and with the budget fixed;
+   while orbiting 60 frames, with the adaptive points per frame (what the page does) and
+   with the budget fixed, and (adaptive) 4 gestures that start while the view refines after
+   a pause, the first frame timed from the move; beside each, the frames of the idle page
+   (nothing drawn), the floor the machine's load sets;
    then a tour of 20 viewpoints, after which the tab's JS heap, the browser's processes'
    RSS, the points kept loaded and the server's peak RSS are read; then each operation's
    time through the HTTP API (split, fit preview, fit, assign of the whole scan, undo, redo,
    counts in view, save). Potree's default budget is 1 M points.
+3. ``passes``: the split of the operations above three ways in one process: over the octree
+   nodes (what the server does), and as the compiled pass over every point on one thread and
+   on numba's threads (the peer); the three masks are checked equal.
 
 Then the scripted labelling run (``--script-points``): buildings with the 3D workflow (per
 building: a top-view crop, then plane fits through three picked points, each followed by
@@ -204,7 +210,47 @@ _ORBIT = """async (frames) => {
     await new Promise((r) => requestAnimationFrame(r));
     const now = performance.now(); times.push(now - last); last = now; shown += v.stats().points;
   }
-  return { times, movingBudget: v.movingBudget, shown: shown / frames };
+  return { times, framePoints: v.framePoints, shown: shown / frames };
+}"""
+
+# The floor under the machine's load: frames of the idle page (nothing drawn), same count.
+_IDLE_FRAMES = """async (frames) => {
+  const times = [];
+  await new Promise((r) => requestAnimationFrame(r));
+  let last = performance.now();
+  for (let i = 0; i < frames; i++) {
+    await new Promise((r) => requestAnimationFrame(r));
+    const now = performance.now(); times.push(now - last); last = now;
+  }
+  return times;
+}"""
+
+# Gestures that start while the view refines: after each pause (the view at rest refines in
+# slices and loads nodes), the camera moves at a moment not tied to a frame; the first frame's
+# time counts from that moment.
+_RESTARTS = """async ([gestures, frames]) => {
+  const v = window.labelApp.viewer, first = [], times = [];
+  const frame = () => new Promise((r) => requestAnimationFrame(r));
+  const turn = () => {
+    const t = v.controls.target, p = v.camera.position, a = Math.PI / 60;
+    const dx = p.x - t.x, dy = p.y - t.y;
+    p.x = t.x + dx * Math.cos(a) - dy * Math.sin(a);
+    p.y = t.y + dx * Math.sin(a) + dy * Math.cos(a);
+    v.controls.update();
+  };
+  for (let g = 0; g < gestures; g++) {
+    await new Promise((r) => setTimeout(r, 300 + 150 * g));
+    let last = performance.now();
+    turn();
+    await frame();
+    let now = performance.now(); first.push(now - last); last = now;
+    for (let i = 1; i < frames; i++) {
+      turn();
+      await frame();
+      now = performance.now(); times.push(now - last); last = now;
+    }
+  }
+  return { first, times };
 }"""
 
 _GOTO = """async (k) => {
@@ -274,24 +320,32 @@ def child_browser(prepared: dict[str, Any]) -> dict[str, Any]:
                     for budget in (250_000, 500_000, 1_000_000, 2_000_000):
                         page.evaluate(
                             "([b, a]) => { const v = window.labelApp.viewer; v.adaptive = a;"
-                            " v.movingBudget = Math.min(300000, b); v.setBudget(b); }",
+                            " v.setBudget(b); }",
                             [budget, adaptive],
                         )
                         _wait_idle(page)
                         page.wait_for_timeout(1000)  # let the GPU process drain
+                        idle = sorted(page.evaluate(_IDLE_FRAMES, 60))
                         result = page.evaluate(_ORBIT, 60)
                         times = sorted(result["times"])
-                        orbit.append(
-                            {
-                                "budget": budget,
-                                "adaptive": adaptive,
-                                "fps": 1000 / (sum(times) / len(times)),
-                                "median_frame_ms": times[len(times) // 2],
-                                "worst_frame_ms": times[-1],
-                                "moving_budget_end": result["movingBudget"],
-                                "mean_points_shown": result["shown"],
-                            }
-                        )
+                        row = {
+                            "budget": budget,
+                            "adaptive": adaptive,
+                            "load": os.getloadavg()[0],
+                            "fps": 1000 / (sum(times) / len(times)),
+                            "median_frame_ms": times[len(times) // 2],
+                            "worst_frame_ms": times[-1],
+                            "frame_points_end": result["framePoints"],
+                            "idle_page_median_worst_frame_ms": [idle[len(idle) // 2], idle[-1]],
+                            "mean_points_shown": result["shown"],
+                        }
+                        if adaptive:
+                            restarts = page.evaluate(_RESTARTS, [4, 15])
+                            row["restart_first_frame_ms"] = restarts["first"]
+                            row["restart_worst_frame_ms"] = max(
+                                restarts["first"] + restarts["times"]
+                            )
+                        orbit.append(row)
                         print(json.dumps(orbit[-1]), file=sys.stderr, flush=True)
                 out["orbit"] = orbit
                 page.evaluate(
@@ -346,6 +400,67 @@ def child_operations(prepared: dict[str, Any]) -> dict[str, Any]:
         finally:
             os.killpg(server.pid, signal.SIGTERM)
             server.wait(30)
+    return out
+
+
+def child_passes(prepared: dict[str, Any]) -> dict[str, Any]:
+    """The benchmark's split three ways, in process: over the octree nodes (what a split
+    does) and as the pass over every point on one thread and on numba's threads; the
+    three results are checked equal."""
+    from dataclasses import asdict
+
+    from semantic3d.labelling import _op_kernels
+    from semantic3d.labelling.blocks import block_threads
+    from semantic3d.labelling.delta import empty_bits
+    from semantic3d.labelling.node_split import split_flips_by_nodes
+    from semantic3d.labelling.opening import open_label_session
+
+    out: dict[str, Any] = {"load_before": os.getloadavg()[0], "threads": block_threads()}
+    with tempfile.TemporaryDirectory() as scratch:
+        session = open_label_session(
+            prepared["cache"], labels_path=Path(scratch) / "passes.labels", cache_dir=USER_CACHE
+        )
+        try:
+            station = np.asarray(prepared["station_m"]) - session.origin
+            matrix = _top_view(station, 30.0)
+            polygon = np.asarray(SQUARE)
+            editable = session.editable_layers()
+
+            def every_point(threads: int) -> Any:
+                flip = empty_bits(session.n_points)
+                session.map_blocks(
+                    lambda start, xyz: _op_kernels.split_flips(
+                        xyz, start, session.origin, session.labels, session.working, editable,
+                        matrix, polygon, True, flip,
+                    ),
+                    threads=threads,
+                )  # fmt: skip
+                return flip
+
+            def by_nodes() -> Any:
+                flip = empty_bits(session.n_points)
+                out["node_split"] = asdict(
+                    split_flips_by_nodes(
+                        session, matrix, polygon, keep_inside=True, editable=editable, flip=flip
+                    )
+                )
+                return flip
+
+            flips = []
+            for name, run in (
+                ("every_point_1_thread", lambda: every_point(1)),
+                ("every_point_threads", lambda: every_point(block_threads())),
+                ("by_nodes", by_nodes),
+            ):
+                run()  # compiled kernels and the page cache warm
+                cpu, start = time.process_time(), time.perf_counter()
+                flips.append(run())
+                out[f"{name}_s"] = time.perf_counter() - start
+                out[f"{name}_cpu_s"] = time.process_time() - cpu
+            out["equal"] = all(np.array_equal(flips[0], f) for f in flips[1:])
+        finally:
+            session.close()
+    out["load_after"] = os.getloadavg()[0]
     return out
 
 
@@ -553,8 +668,10 @@ def main() -> None:
     parser.add_argument("--points", type=int, nargs="+", default=[10_000_000])
     parser.add_argument("--script-points", type=int, default=1_000_000)
     parser.add_argument("--quick", action="store_true", help="1 M points, no scripted run")
-    parser.add_argument("--child", choices=["build", "browser", "operations", "script"])
-    parser.add_argument("--operations-only", action="store_true", help="server operations only")
+    parser.add_argument("--child", choices=["build", "browser", "operations", "passes", "script"])
+    parser.add_argument(
+        "--operations-only", action="store_true", help="server operations and passes only"
+    )
     parser.add_argument("--prepared")
     args = parser.parse_args()
     if args.child:
@@ -563,6 +680,7 @@ def main() -> None:
             "build": child_build,
             "browser": child_browser,
             "operations": child_operations,
+            "passes": child_passes,
             "script": scripted_run,
         }
         print(json.dumps(run[args.child](prepared)))
@@ -571,7 +689,9 @@ def main() -> None:
         args.points, args.script_points = [1_000_000], 0
     if args.operations_only:
         for n in args.points:
-            print(json.dumps(_child("operations", prepare(n)), indent=1), flush=True)
+            row = _child("operations", prepare(n))
+            row["passes"] = _child("passes", prepare(n))
+            print(json.dumps(row, indent=1), flush=True)
         return
     rows = []
     for n in args.points:
@@ -579,6 +699,7 @@ def main() -> None:
         row = {"simulate_s": prepared["simulate_s"], "cache_s": prepared["cache_s"]}
         row.update(_child("build", prepared))
         row.update(_child("browser", prepared))
+        row["passes"] = _child("passes", prepared)
         rows.append(row)
         print(json.dumps(row, indent=1), flush=True)
     script = _child("script", prepare(args.script_points)) if args.script_points else None

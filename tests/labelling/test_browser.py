@@ -564,3 +564,56 @@ def test_a_long_tour_stays_under_the_memory_budget(browser, served):
         page.close()
     assert evicted > 0, (peaks, largest, trace)
     assert max(peaks) <= 9000 + 2 * largest, (peaks, largest)
+
+
+_RECORD_DRAWS = """() => {
+  const v = window.labelApp.viewer, draw = v.draw.bind(v);
+  window.draws = [];
+  v.draw = (nodes, target, clear = true) => {
+    const points = nodes.reduce((sum, node) => sum + node.info.count, 0);
+    window.draws.push({ points, screen: !target, clear, limit: v.framePoints });
+    draw(nodes, target, clear);
+  };
+  v.framePoints = 7000;
+}"""
+
+
+def test_frames_draw_bounded_slices_and_a_press_stops_the_refinement(browser, served):
+    """A move draws one slice a frame, straight to the screen; at rest slices add up."""
+    server, session, _ = served
+    largest = max(node.count for node in session.lod.nodes)
+    page = browser.new_page(viewport={"width": 900, "height": 600}, bypass_csp=True)
+    errors: list[str] = []
+    page.on("pageerror", lambda error: errors.append(str(error)))
+    try:
+        page.goto(server.url)
+        _idle(page)
+        full = page.evaluate("window.labelApp.viewer.stats().points")
+        page.evaluate(_RECORD_DRAWS)
+        # Pressed: a redraw draws one slice on the screen and no more while the press lasts.
+        page.mouse.move(450, 300)
+        page.mouse.down()
+        page.evaluate("window.labelApp.viewer.recolour()")
+        page.wait_for_timeout(600)
+        pressed = page.evaluate("window.draws.splice(0)")
+        assert len(pressed) == 1 and pressed[0]["screen"] and pressed[0]["clear"], pressed
+        # Dragging: every frame is a cleared screen with one slice.
+        for step in range(1, 8):
+            page.mouse.move(450 + 12 * step, 300)
+            page.wait_for_timeout(40)
+        moving = page.evaluate("window.draws.splice(0)")
+        page.mouse.up()
+        _idle(page)
+        resting = page.evaluate("window.draws.splice(0)")
+        stats = page.evaluate("window.labelApp.viewer.stats()")
+    finally:
+        page.close()
+    assert not errors, errors
+    assert moving and all(d["screen"] and d["clear"] for d in moving), moving
+    for draw in pressed + moving + resting:
+        assert draw["points"] <= max(draw["limit"], largest), draw
+    # At rest: into the off-screen buffer, cleared once, then slices that add up to the view.
+    slices = [d for d in resting if d["points"]]
+    assert not any(d["screen"] for d in resting) and resting[0]["clear"], resting
+    assert len(slices) >= 2 and not any(d["clear"] for d in resting[1:]), resting
+    assert sum(d["points"] for d in slices) == stats["points"] >= 0.5 * full, (resting, stats)

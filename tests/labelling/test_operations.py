@@ -157,7 +157,7 @@ def test_a_fit_passes_through_the_picks_and_stays_in_its_region(session, simulat
 
 
 def test_an_operation_reports_progress_and_can_be_cancelled(session, monkeypatch) -> None:
-    monkeypatch.setattr("semantic3d.labelling.session.BLOCK_POINTS", 4096)
+    monkeypatch.setattr("semantic3d.labelling.blocks.BLOCK_POINTS", 4096)
     reached = threading.Event()
     release = threading.Event()
     update = session.progress.update
@@ -179,7 +179,7 @@ def test_an_operation_reports_progress_and_can_be_cancelled(session, monkeypatch
     assert reached.wait(10)
     snapshot = session.progress.snapshot()
     assert snapshot["running"] and snapshot["operation"] == "split" and snapshot["cancellable"]
-    assert 0 < snapshot["done"] < snapshot["total"] == session.n_points
+    assert 0 < snapshot["done"] < snapshot["total"] <= session.n_points
     assert session.cancel()
     release.set()
     worker.join(10)
@@ -217,6 +217,53 @@ def test_counts_and_confusion_of_the_working_set_and_the_view(session, simulated
     assert view["counts"] == np.bincount(truth[in_view], minlength=9).tolist()
 
 
+def _perspective(height_m: float = 80.0, focal: float = 1.5) -> np.ndarray:
+    """A camera looking down from ``height_m`` (row-major view-projection, near 1, far 200)."""
+    near, far = 1.0, 200.0
+    a, b = -(far + near) / (far - near), -2 * far * near / (far - near)
+    return np.array(
+        [[focal, 0, 0, 0], [0, focal, 0, 0], [0, 0, a, b - a * height_m], [0, 0, -1, height_m]]
+    )
+
+
+def test_passes_on_threads_equal_the_pass_in_order(session, simulated_scan, monkeypatch) -> None:
+    """Splits, masks, fits and counts over blocks on threads set the same bits as in order."""
+    monkeypatch.setattr("semantic3d.labelling.blocks.BLOCK_POINTS", 4096)  # 10 blocks
+    truth = simulated_scan.truth
+    session.labels[:] = truth
+    session.set_layer(3, locked=True)
+    xyz = _local(session)
+    perspective = _perspective()
+    mask = np.packbits(np.random.default_rng(2).random(64 * 48) < 0.5, bitorder="little")
+    plane = {"kind": "plane", "point": [0.0, 0.0, float(np.median(xyz[:, 2]))]}
+    plane["normal"] = [0.0, 0.0, 1.0]
+    outcomes = []
+    for threads in (1, 3):
+        monkeypatch.setattr("semantic3d.labelling.blocks.block_threads", lambda t=threads: t)
+        sets = []
+        for operation in (
+            lambda: session.split(perspective, TRIANGLE),
+            lambda: session.split(TOP_VIEW, TRIANGLE, keep="outside"),
+            lambda: session.split_mask(perspective, mask, width=64, height=48),
+            lambda: session.fit("plane", [plane["point"]], tolerance_m=1.0, model=plane),
+        ):
+            session.reset()
+            operation()
+            sets.append(session.working.copy())
+        view = selection_stats(session, scope="view", view_projection=perspective.reshape(-1))
+        outcomes.append((sets, view["counts"]))
+    for in_order, on_threads in zip(outcomes[0][0], outcomes[1][0], strict=True):
+        assert 0 < in_order.sum() < 0.9 * in_order.size
+        np.testing.assert_array_equal(in_order, on_threads)
+    assert outcomes[0][1] == outcomes[1][1]
+    # The perspective split (a division by w per point) equals the numpy reference.
+    ndc, in_front = geometry.project_to_ndc(xyz, perspective)
+    inside = geometry.points_in_polygon(ndc, TRIANGLE) & in_front
+    editable = ~session.locked[truth]
+    assert 0 < inside.sum() < inside.size
+    np.testing.assert_array_equal(outcomes[0][0][0], editable & inside)
+
+
 @pytest.fixture(scope="module")
 def million_point_cache(tmp_path_factory):
     """A synthetic scan of 10**6 points (a noisy box), enough to tell bytes per point apart."""
@@ -240,12 +287,15 @@ def test_operations_hold_about_one_byte_per_point(million_point_cache, tmp_path,
 
     At 10**6 points a list of int64 indices would take 8 MB, a copy of the labels 1 MB;
     the budget is two bit masks (250 kB), one byte per relabelled point (1 MB) and the
-    compressor's fixed buffers.
+    compressor's fixed buffers, plus one block of coordinates per thread of a pass.
     """
-    monkeypatch.setattr("semantic3d.labelling.session.BLOCK_POINTS", 1 << 16)
+    from semantic3d.labelling.blocks import block_threads
+
+    block = 1 << 16
+    monkeypatch.setattr("semantic3d.labelling.blocks.BLOCK_POINTS", block)
     session = open_label_session(million_point_cache, labels_path=tmp_path / "m.labels")
     n = session.n_points
-    budget = 1.3 * n + 2_000_000
+    budget = 1.3 * n + 2_000_000 + (block_threads() - 1) * block * 24
     operations = (
         lambda: session.assign(4, confirm_whole_scan=True),
         session.undo,

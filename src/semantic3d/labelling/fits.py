@@ -239,11 +239,12 @@ def fit(
         flip = empty_bits(session.n_points)
         editable = session.editable_layers()
         if region is None:
-            for start, xyz in session.iter_blocks():
-                kernels.fit_flips(
+            session.map_blocks(
+                lambda start, xyz: kernels.fit_flips(
                     xyz, start, session.origin, session.labels, session.working, editable,
                     code, parameters, tolerance, region_code, region_parameters, flip,
-                )  # fmt: skip
+                )
+            )  # fmt: skip
         else:  # every active point leaves, but the inliers of the nodes meeting the region
             kernels.mark_active(session.labels, session.working, editable, flip)
             for positions, index in _region_nodes(session, region):

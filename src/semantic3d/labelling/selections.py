@@ -2,8 +2,10 @@
 
 The paper's 2D workflow: a polygon drawn on the screen extrudes through every depth; a
 lasso or a brush stroke is rasterised on the page and sent as a bit mask of the screen.
-Either is applied by one compiled pass over every editable working point of the scan
-(:mod:`~semantic3d.labelling._op_kernels`), never over what the screen shows.
+Both apply to every editable working point of the scan, never only to what the screen
+shows: a polygon through the octree nodes across its edges (:mod:`.node_split`; the
+others are decided whole), a mask by one compiled pass over every point
+(:mod:`._op_kernels`, on threads: :func:`.blocks.map_blocks`).
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ from semantic3d.labelling import _op_kernels as kernels
 from semantic3d.labelling import geometry
 from semantic3d.labelling.delta import Delta, empty_bits
 from semantic3d.labelling.errors import OperationError
+from semantic3d.labelling.node_split import split_flips_by_nodes
 from semantic3d.labelling.session import LabelSession, OperationResult
 
 __all__ = ["split", "split_mask"]
@@ -31,11 +34,9 @@ def split(
     with session.lock, session._run("split"):
         flip = empty_bits(session.n_points)
         editable = session.editable_layers()
-        for start, xyz in session.iter_blocks():
-            kernels.split_flips(
-                xyz, start, session.origin, session.labels, session.working, editable,
-                matrix, vertices, keep == "inside", flip,
-            )  # fmt: skip
+        split_flips_by_nodes(
+            session, matrix, vertices, keep_inside=keep == "inside", editable=editable, flip=flip
+        )
         operation = {
             "name": "split",
             "keep": keep,
@@ -75,11 +76,12 @@ def split_mask(
     with session.lock, session._run("split"):
         flip = empty_bits(session.n_points)
         editable = session.editable_layers()
-        for start, xyz in session.iter_blocks():
-            kernels.mask_flips(
+        session.map_blocks(
+            lambda start, xyz: kernels.mask_flips(
                 xyz, start, session.origin, session.labels, session.working, editable,
                 matrix, bits, width, height, keep == "inside", flip,
-            )  # fmt: skip
+            )
+        )  # fmt: skip
         operation = {
             "name": "split_mask",
             "keep": keep,

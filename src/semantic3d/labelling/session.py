@@ -27,9 +27,9 @@ from __future__ import annotations
 
 import logging
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -37,6 +37,8 @@ from numpy.typing import ArrayLike, NDArray
 from semantic3d.core.classes import N_CLASSES
 from semantic3d.io.cache import CachedScan
 from semantic3d.labelling import _op_kernels as kernels
+from semantic3d.labelling import blocks
+from semantic3d.labelling.blocks import BLOCK_POINTS
 from semantic3d.labelling.delta import Delta, empty_bits
 from semantic3d.labelling.errors import OperationError, ReadOnlyError, WholeScanError
 from semantic3d.labelling.fitting import Region
@@ -66,8 +68,7 @@ if TYPE_CHECKING:
 
 logger = logging.getLogger(__name__)
 
-BLOCK_POINTS = 1 << 20
-"""Points read at a time when an operation streams the scan's coordinates."""
+T = TypeVar("T")
 
 N_LAYERS = N_CLASSES + 1
 
@@ -191,34 +192,18 @@ class LabelSession:
     # -- streaming ----------------------------------------------------------------------------
 
     def iter_blocks(self, *, active_only: bool = True) -> Iterator[tuple[int, NDArray[np.float64]]]:
-        """``(first index, float64 xyz block)`` over the scan, with progress and cancel.
+        """``(first index, float64 xyz block)`` over the scan in order (:func:`.blocks.iter_blocks`)."""
+        return blocks.iter_blocks(self, active_only=active_only)
 
-        With ``active_only``, blocks holding no editable working point are skipped unread.
-        The block is a reused buffer (valid until the next one).
-        """
-        path = self.scan.path / "xyz.npy"
-        offset = int(self.scan.xyz.offset) if isinstance(self.scan.xyz, np.memmap) else 128
-        buffer = np.empty((BLOCK_POINTS, 3), np.float64)
-        editable = self.editable_layers()
-        with path.open("rb", buffering=0) as stream:
-            for start in range(0, self.n_points, BLOCK_POINTS):
-                stop = min(start + BLOCK_POINTS, self.n_points)
-                self.progress.update(start)
-                if active_only and not kernels.any_active(
-                    self.labels, self.working, editable, start, stop
-                ):
-                    continue
-                block = buffer[: stop - start]
-                stream.seek(offset + start * 24)
-                view = memoryview(block.reshape(-1).view(np.uint8))  # type: ignore[arg-type]
-                got = 0
-                while got < view.nbytes:
-                    read = stream.readinto(view[got:])
-                    if not read:
-                        raise OSError(f"{path}: unexpected end of file at point {start}")
-                    got += read
-                yield start, block
-        self.progress.update(self.n_points)
+    def map_blocks(
+        self,
+        work: Callable[[int, NDArray[np.float64]], T],
+        *,
+        active_only: bool = True,
+        threads: int | None = None,
+    ) -> list[T | None]:
+        """``work`` on every block of the scan, on threads (:func:`.blocks.map_blocks`)."""
+        return blocks.map_blocks(self, work, active_only=active_only, threads=threads)
 
     def _run(self, name: str) -> _Running:
         self._require_writable()

@@ -13,7 +13,7 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 
 from semantic3d.core.classes import N_CLASSES
 from semantic3d.labelling import _op_kernels as kernels
@@ -59,16 +59,23 @@ def selection_stats(
                 )
             camera = geometry._as_matrix(view_projection)
             shown = ~session.hidden
-            for start, xyz in session.iter_blocks(active_only=False):
+
+            def count(start: int, xyz: NDArray[np.float64]) -> NDArray[np.int64]:
                 block_prediction = (
                     prediction[start : start + len(xyz)]
                     if prediction is not None
                     else np.full(len(xyz), 255, np.uint8)
                 )
+                block_matrix = np.zeros_like(matrix)
                 kernels.view_confusion(
                     xyz, 0, session.origin, session.labels[start : start + len(xyz)],
-                    block_prediction, camera, shown, matrix,
+                    block_prediction, camera, shown, block_matrix,
                 )  # fmt: skip
+                return block_matrix
+
+            for block_matrix in session.map_blocks(count, active_only=False):
+                assert block_matrix is not None
+                matrix += block_matrix
     counts = matrix.sum(axis=1)
     result: dict[str, Any] = {
         "scope": scope,

@@ -1,8 +1,15 @@
 // Point-cloud rendering: a level-of-detail octree streamed from the server, coarse first.
 //
-// - Budget: nodes are chosen by their size on screen under a point budget. While the camera
-//   moves, a lower budget adapts to the measured frame time (so orbiting stays interactive
-//   on software WebGL); when it stops, the view refines up to the full budget.
+// - Budget: nodes are chosen by their size on screen under a point budget, coarse first.
+// - Frames: each frame draws at most ``framePoints`` points, a number that follows the
+//   measured frame time. The points accumulate in an off-screen buffer: a camera move clears
+//   it and draws the first slice (so a moving view, from its first frame, costs one slice);
+//   when the camera rests, the following frames add slices of nodes without clearing, until
+//   the full budget is drawn. The screen is that buffer plus the overlays (picks, measures,
+//   regions), which change without redrawing the points. A node's buffers reach the GPU with
+//   the slice that first draws it, so uploads are bounded per frame too. A pointer press or
+//   a wheel step stops the refinement before the first frame of the move; nodes load only
+//   when the camera rests.
 // - Memory: loaded nodes are kept in a least-recently-used order; above the memory budget
 //   (in points) the nodes not shown for longest are disposed.
 // - Views: orbit (perspective), fixed 2D views along the axes (top, front, side) and a free
@@ -28,7 +35,18 @@ void main() { gl_FragColor = vec4(vColor, 1.0); }`;
 
 const MAX_IN_FLIGHT = 4;
 const SETTLE_MS = 250;
-const MIN_MOVING_BUDGET = 50_000;
+// Points drawn in one frame (a moving view, or one slice of a refinement) follow the
+// measured frame times so that a frame takes about FRAME_TARGET_MS.
+const FRAME_TARGET_MS = 50;
+const MIN_FRAME_POINTS = 30_000;
+const START_FRAME_POINTS = 100_000;
+const COPY_VERTEX = `
+varying vec2 vUv;
+void main() { vUv = uv; gl_Position = vec4(position.xy, 0.0, 1.0); }`;
+const COPY_FRAGMENT = `
+uniform sampler2D map;
+varying vec2 vUv;
+void main() { gl_FragColor = texture2D(map, vUv); }`;
 export const RAMP = [[0, 0, 255], [0, 255, 255], [0, 200, 0], [255, 255, 0], [255, 0, 0]];
 
 export function ramp(t) {
@@ -37,6 +55,43 @@ export function ramp(t) {
   const i = Math.min(Math.floor(x), RAMP.length - 2);
   const f = x - i;
   return RAMP[i].map((a, k) => a + (RAMP[i + 1][k] - a) * f);
+}
+
+// A max-heap of node ids by priority (the level-of-detail traversal pops the largest).
+class Heap {
+  constructor() { this.ids = []; this.keys = []; }
+  get size() { return this.ids.length; }
+  push(id, key) {
+    const { ids, keys } = this;
+    let i = ids.length;
+    ids.push(id); keys.push(key);
+    while (i > 0) {
+      const parent = (i - 1) >> 1;
+      if (keys[parent] >= key) break;
+      ids[i] = ids[parent]; keys[i] = keys[parent];
+      i = parent;
+    }
+    ids[i] = id; keys[i] = key;
+  }
+  pop() {
+    const { ids, keys } = this;
+    const top = ids[0];
+    const id = ids.pop(), key = keys.pop();
+    const n = ids.length;
+    if (n) {
+      let i = 0;
+      for (;;) {
+        let child = 2 * i + 1;
+        if (child >= n) break;
+        if (child + 1 < n && keys[child + 1] > keys[child]) child += 1;
+        if (keys[child] <= key) break;
+        ids[i] = ids[child]; keys[i] = keys[child];
+        i = child;
+      }
+      ids[i] = id; keys[i] = key;
+    }
+    return top;
+  }
 }
 
 function percentile(sorted, q) {
@@ -53,9 +108,13 @@ export class Viewer {
       const v = parseInt(c.colour.slice(1), 16);
       return [(v >> 16) & 255, (v >> 8) & 255, v & 255];
     });
-    this.nodes = this.hierarchy.nodes.map((info) => ({
-      info, object: null, data: null, state: null, loading: false, lastUsed: 0,
-    }));
+    this.nodes = this.hierarchy.nodes.map((info) => {
+      const b = info.bounds;
+      const box = new THREE.Box3(new THREE.Vector3(b[0], b[1], b[2]), new THREE.Vector3(b[3], b[4], b[5]));
+      const centre = box.getCenter(new THREE.Vector3());
+      const radius = Math.hypot(b[3] - b[0], b[4] - b[1], b[5] - b[2]) / 2;
+      return { info, box, centre, radius, object: null, data: null, state: null, paint: false, loading: false, lastUsed: 0 };
+    });
     const lo = this.hierarchy.bounds_min, hi = this.hierarchy.bounds_max;
     this.bounds = new THREE.Box3(new THREE.Vector3(...lo), new THREE.Vector3(...hi));
     this.frame = new THREE.Box3().copy(this.bounds); // what the start view shows
@@ -64,8 +123,8 @@ export class Viewer {
     this.colourMode = 'class';
     this.pointSize = 2;
     this.pointBudget = 1_000_000;
-    this.movingBudget = 300_000;
-    this.adaptive = true; // false: move at the full budget (a benchmark's fixed-budget row)
+    this.framePoints = START_FRAME_POINTS;
+    this.adaptive = true; // false: every frame draws the full budget (a benchmark's fixed-budget row)
     this.memoryBudget = 4_000_000;
     this.dimOutside = true;
     this.hidden = new Array(this.palette.length).fill(false);
@@ -74,17 +133,46 @@ export class Viewer {
     this.inFlight = 0;
     this.listeners = [];
     this.tick = 0;
-    this.movingUntil = 0;
+    this.order = []; // the nodes wanted under the budget, in the order they are drawn
+    this.wanted = new Set();
+    this.drawn = new Set(); // nodes in the off-screen buffer since it was last cleared
+    this.drawnPoints = 0;
+    this.stale = true; // the picture must be cleared and drawn again
+    this.buffered = false; // the off-screen buffer holds the nodes drawn
+    this.userMoved = false; // a move not yet drawn
+    this.interacting = false; // a pointer is pressed on the view
+    this.lastMove = -Infinity;
     this.lastFrame = 0;
-    this.frameTimes = [];
+    this.wantedSince = null; // when the next frame was first asked for (an input's time)
+    this.inputSince = null;
+    this.lastFramePoints = 0;
+    this.lastFrameFull = false;
+    this.holdFrames = 0;
+    this.quickFrames = 0;
     this.loadedPoints = 0;
     this.evicted = 0;
 
-    this.renderer = new THREE.WebGLRenderer({ antialias: false, preserveDrawingBuffer: true });
+    this.renderer = new THREE.WebGLRenderer({ antialias: false });
     this.renderer.setPixelRatio(1);
     this.renderer.setClearColor(0x111111);
+    this.renderer.autoClear = false;
     container.prepend(this.renderer.domElement);
-    this.scene = new THREE.Scene();
+    this.scene = new THREE.Scene(); // the nodes' points
+    this.overlayScene = new THREE.Scene();
+    this.target = new THREE.WebGLRenderTarget(1, 1, {
+      minFilter: THREE.NearestFilter, magFilter: THREE.NearestFilter, generateMipmaps: false, depthBuffer: true,
+    });
+    this.copyScene = new THREE.Scene();
+    const copy = new THREE.Mesh(new THREE.PlaneGeometry(2, 2), new THREE.ShaderMaterial({
+      uniforms: { map: { value: this.target.texture } },
+      vertexShader: COPY_VERTEX,
+      fragmentShader: COPY_FRAGMENT,
+      depthTest: false,
+      depthWrite: false,
+    }));
+    copy.frustumCulled = false;
+    this.copyScene.add(copy);
+    this.copyCamera = new THREE.OrthographicCamera(-1, 1, 1, -1, 0, 1);
     this.material = new THREE.ShaderMaterial({
       uniforms: { size: { value: this.pointSize } },
       vertexShader: VERTEX,
@@ -94,14 +182,22 @@ export class Viewer {
     this.perspective.up.set(0, 0, 1);
     this.orthographic = new THREE.OrthographicCamera(-1, 1, 1, -1, -this.extent * 20, this.extent * 20);
     this.overlay = new THREE.Group();
-    this.overlay.renderOrder = 1;
-    this.scene.add(this.overlay);
+    this.overlayScene.add(this.overlay);
     this.picked = this.addOverlayPoints(0xff2020, 9);
     this.previewPoints = this.addOverlayPoints(0xffff00, 3);
     this.measureLine = new THREE.Line(new THREE.BufferGeometry(), new THREE.LineBasicMaterial({ color: 0xff60ff, depthTest: false }));
     this.overlay.add(this.measureLine);
     this.regionObject = null;
     this.setView('free');
+    // The time of the first input of a move, so that a frame's time counts from it.
+    const input = (e) => {
+      if (this.inputSince === null && (e.type === 'wheel' || e.buttons)) {
+        const first = e.getCoalescedEvents ? e.getCoalescedEvents()[0] : null;
+        this.inputSince = (first || e).timeStamp;
+      }
+    };
+    this.renderer.domElement.addEventListener('pointermove', input, { capture: true, passive: true });
+    this.renderer.domElement.addEventListener('wheel', input, { capture: true, passive: true });
     new ResizeObserver(() => this.resize()).observe(container);
     this.resize();
   }
@@ -124,6 +220,7 @@ export class Viewer {
   resize() {
     const w = this.container.clientWidth, h = this.container.clientHeight;
     this.renderer.setSize(w, h);
+    this.target.setSize(Math.max(w, 1), Math.max(h, 1));
     this.perspective.aspect = w / Math.max(h, 1);
     this.perspective.updateProjectionMatrix();
     this.fitOrthographic();
@@ -177,114 +274,219 @@ export class Viewer {
     this.controls.screenSpacePanning = true;
     this.controls.zoomToCursor = true;
     this.controls.addEventListener('change', () => this.cameraMoved());
-    this.controls.update();
+    // A press or a wheel step: the refinement stops before the first frame of the move.
+    this.controls.addEventListener('start', () => { this.interacting = true; this.lastMove = performance.now(); });
+    this.controls.addEventListener('end', () => { this.interacting = false; this.cameraRests(); });
+    this.jump(() => this.controls.update());
     this.requestRender(true);
     this.emit();
+  }
+
+  // A view set by the program (a view button, framing, a restored view) is drawn at once and
+  // refined like a resting one; a move by the user (or a script orbiting) pauses loading.
+  jump(change) {
+    this.jumping = true;
+    try { change(); } finally { this.jumping = false; }
   }
 
   cameraMoved() {
-    this.movingUntil = performance.now() + SETTLE_MS;
-    this.cameraChanged = true; // moving until a frame is drawn, however long frames take
-    this.requestRender(true);
-    clearTimeout(this.settleTimer);
-    this.settling = true; // the refinement after the stop is still to come
-    this.settleTimer = setTimeout(() => this.settleNow(), SETTLE_MS + 20);
+    if (this.jumping) { this.requestRender(true); return; }
+    this.userMoved = true;
+    this.lastMove = performance.now();
+    this.requestRender(true, this.inputSince ?? performance.now());
+    this.cameraRests();
   }
 
-  // The camera stopped: refine up to the full budget now.
+  // Refine once the camera has rested SETTLE_MS after the last frame that showed it moving
+  // (counted from that frame, so a slow frame cannot end a move).
+  cameraRests() {
+    clearTimeout(this.settleTimer);
+    this.settleTimer = setTimeout(() => this.scheduleFrame(), SETTLE_MS + 10);
+  }
+
+  // Refine up to the full budget now (as if the camera had rested).
   settleNow() {
     clearTimeout(this.settleTimer);
-    this.settling = false;
-    this.cameraChanged = false;
-    this.movingUntil = 0;
-    this.requestRender(true);
+    this.interacting = false;
+    this.userMoved = false;
+    this.lastMove = -Infinity;
+    this.scheduleFrame();
     this.emit();
   }
 
-  get moving() { return this.cameraChanged || performance.now() < this.movingUntil; }
-
-  requestRender(lod = false) {
-    if (lod) this.lodDirty = true;
-    if (this.pending) return;
-    this.pending = requestAnimationFrame((now) => {
-      this.pending = null;
-      this.adaptBudget(now);
-      if (this.lodDirty) { this.lodDirty = false; this.updateLod(); }
-      this.renderer.render(this.scene, this.camera);
-      this.cameraChanged = false;
-      this.emit();
-    });
+  get moving() {
+    return this.interacting || this.userMoved || performance.now() - this.lastMove < SETTLE_MS;
   }
 
-  // While moving, the budget follows the frame time: lower when frames are slow, higher when fast.
-  adaptBudget(now) {
-    const interval = now - this.lastFrame;
+  // Something drawn changed (the view, colours, sizes, hidden classes): the points are drawn
+  // again from a cleared buffer, ``lod`` when the nodes wanted may have changed too.
+  requestRender(lod = false, since = performance.now()) {
+    if (lod) this.lodDirty = true;
+    this.stale = true;
+    this.scheduleFrame(since);
+  }
+
+  // Only the overlays changed: the screen is the buffer again with the overlays on top.
+  requestOverlay() {
+    this.overlayChanged = true;
+    this.scheduleFrame();
+  }
+
+  scheduleFrame(since = performance.now()) {
+    if (this.wantedSince === null || since < this.wantedSince) this.wantedSince = since;
+    if (this.pending) return;
+    this.pending = requestAnimationFrame((now) => this.drawFrame(now));
+  }
+
+  drawFrame(now) {
+    this.pending = null;
+    this.learnFrameTime(now);
+    if (this.userMoved) { this.userMoved = false; this.lastMove = Math.max(this.lastMove, now); }
+    if (this.lodDirty) { this.lodDirty = false; this.updateLod(); }
+    for (const id of this.drawn) if (!this.wanted.has(id)) { this.stale = true; break; }
+    // While moving, each frame is the first slice of a fresh picture, drawn straight to the
+    // screen; at rest, slices add up in the off-screen buffer.
+    const moving = this.moving;
+    if (moving ? this.overlayChanged && !this.buffered : !this.buffered) this.stale = true;
+    const clear = this.stale;
+    if (clear) { this.stale = false; this.drawn.clear(); this.drawnPoints = 0; }
+    let slice = { nodes: [], points: 0, full: false };
+    if (moving && clear) {
+      slice = this.nextSlice();
+      this.draw(slice.nodes, null);
+      this.buffered = false;
+    } else if (!moving) {
+      slice = this.nextSlice();
+      if (clear || slice.nodes.length || this.overlayChanged) this.draw(slice.nodes, this.target, clear);
+      this.buffered = true;
+    } else if (this.overlayChanged) this.draw([], this.target, false);
+    this.overlayChanged = false;
+    this.lastFramePoints = slice.points;
+    this.lastFrameFull = slice.full;
+    if (!moving) {
+      this.loadMore();
+      if (this.order.some((id) => !this.drawn.has(id) && this.nodes[id].object)) this.scheduleFrame();
+    } else if (!this.interacting) this.cameraRests();
+    this.emit();
+  }
+
+  // The next nodes to draw, in order, up to ``framePoints`` points (at least one node).
+  nextSlice() {
+    const nodes = [];
+    let points = 0, full = false;
+    for (const id of this.order) {
+      const node = this.nodes[id];
+      if (this.drawn.has(id) || !node.object) continue;
+      if (points > 0 && points + node.info.count > this.framePoints) { full = true; break; }
+      nodes.push(node);
+      points += node.info.count;
+    }
+    return { nodes, points, full };
+  }
+
+  // Draw ``nodes`` on the screen (``target`` null: a cleared screen) or into the off-screen
+  // buffer (cleared first if ``clear``) and then the buffer on the screen; overlays on top.
+  draw(nodes, target, clear = true) {
+    const renderer = this.renderer;
+    renderer.setRenderTarget(target);
+    if (clear) renderer.clear();
+    if (nodes.length) {
+      for (const node of nodes) {
+        if (node.paint) this.paintNode(node);
+        node.object.visible = true;
+        this.drawn.add(node.info.id);
+        this.drawnPoints += node.info.count;
+      }
+      renderer.render(this.scene, this.camera);
+      for (const node of nodes) node.object.visible = false;
+    }
+    if (target) {
+      renderer.setRenderTarget(null);
+      renderer.render(this.copyScene, this.copyCamera); // covers the whole screen: no clear
+    }
+    renderer.render(this.overlayScene, this.camera);
+  }
+
+  // The points per frame follow the time each frame took: from when it was asked for (an
+  // input's time, or the request) or the previous frame's start, whichever is later, to its
+  // start. A frame that takes too long lowers them at once; three frames in a row, each asked
+  // for while the previous one was drawn, that took under 3/4 of the target and were limited
+  // by them raise them by 10 %. After a change the next two frames are not counted (they were
+  // queued before it).
+  learnFrameTime(now) {
+    const previous = this.lastFrame;
+    const since = this.wantedSince ?? now;
     this.lastFrame = now;
-    if (!this.adaptive) { this.movingBudget = this.pointBudget; return; }
-    if (!this.moving || interval > 1000) return;
-    this.frameTimes.push(interval);
-    if (this.frameTimes.length > 120) this.frameTimes.shift();
-    if (interval > 60) this.movingBudget = Math.max(MIN_MOVING_BUDGET, Math.round(this.movingBudget * 0.7));
-    else if (interval < 35) this.movingBudget = Math.min(this.pointBudget, Math.round(this.movingBudget * 1.1));
+    this.wantedSince = null;
+    this.inputSince = null;
+    const drew = this.lastFramePoints, full = this.lastFrameFull;
+    this.lastFramePoints = 0;
+    if (!this.adaptive) { this.framePoints = this.pointBudget; return; }
+    if (!drew) return;
+    const milliseconds = now - Math.max(previous, since);
+    if (milliseconds > 1000) return;
+    if (this.holdFrames > 0) { this.holdFrames -= 1; return; }
+    if (milliseconds > FRAME_TARGET_MS * 1.3) {
+      const factor = Math.min(Math.max(FRAME_TARGET_MS / milliseconds, 0.5), 0.8);
+      const floor = Math.min(MIN_FRAME_POINTS, this.framePoints);
+      this.framePoints = Math.max(floor, Math.round(this.framePoints * factor));
+      this.holdFrames = 2;
+      this.quickFrames = 0;
+      return;
+    }
+    const backToBack = since - previous < 20;
+    this.quickFrames = backToBack && full && milliseconds < FRAME_TARGET_MS * 0.75 ? this.quickFrames + 1 : 0;
+    if (this.quickFrames >= 3) {
+      this.framePoints = Math.min(this.pointBudget, Math.round(this.framePoints * 1.1));
+      this.holdFrames = 2;
+      this.quickFrames = 0;
+    }
   }
 
   // --- level of detail ---------------------------------------------------------------------
 
   screenSize(node) {
-    const b = node.info.bounds;
-    const centre = new THREE.Vector3((b[0] + b[3]) / 2, (b[1] + b[4]) / 2, (b[2] + b[5]) / 2);
-    const radius = Math.hypot(b[3] - b[0], b[4] - b[1], b[5] - b[2]) / 2;
     const h = this.container.clientHeight;
     const camera = this.camera;
     if (camera.isOrthographicCamera) {
-      return (radius * camera.zoom * h) / (camera.top - camera.bottom);
+      return (node.radius * camera.zoom * h) / (camera.top - camera.bottom);
     }
-    const distance = Math.max(camera.position.distanceTo(centre) - radius, 1e-3);
-    return (radius / distance) * (h / 2) / Math.tan((camera.fov * Math.PI) / 360);
+    const distance = Math.max(camera.position.distanceTo(node.centre) - node.radius, 1e-3);
+    return (node.radius / distance) * (h / 2) / Math.tan((camera.fov * Math.PI) / 360);
   }
 
+  // The nodes in view under the point budget, the largest on screen first (a binary heap).
   updateLod() {
     const camera = this.camera;
     camera.updateMatrixWorld();
     const frustum = new THREE.Frustum().setFromProjectionMatrix(
       new THREE.Matrix4().multiplyMatrices(camera.projectionMatrix, camera.matrixWorldInverse),
     );
-    const moving = this.moving;
-    const budget = moving ? Math.min(this.movingBudget, this.pointBudget) : this.pointBudget;
-    const wanted = new Set();
-    const queue = [{ id: 0, priority: Infinity }];
+    const budget = this.pointBudget;
+    const order = [];
+    const heap = new Heap();
+    heap.push(0, Infinity);
     let points = 0;
     this.tick += 1;
-    while (queue.length) {
-      queue.sort((a, b) => b.priority - a.priority);
-      const { id } = queue.shift();
-      const node = this.nodes[id];
-      const b = node.info.bounds;
-      const box = new THREE.Box3(new THREE.Vector3(b[0], b[1], b[2]), new THREE.Vector3(b[3], b[4], b[5]));
-      if (!frustum.intersectsBox(box)) continue;
+    while (heap.size) {
+      const node = this.nodes[heap.pop()];
+      if (!frustum.intersectsBox(node.box)) continue;
       if (points + node.info.count > budget && points > 0) break;
-      // While moving, only what is already loaded is drawn (loading waits for the stop).
-      if (moving && !node.object && points > 0) continue;
       points += node.info.count;
-      wanted.add(id);
+      order.push(node.info.id);
       node.lastUsed = this.tick;
-      for (const child of node.info.children) {
-        queue.push({ id: child, priority: this.screenSize(this.nodes[child]) });
-      }
+      for (const child of node.info.children) heap.push(child, this.screenSize(this.nodes[child]));
     }
-    this.wanted = wanted;
-    for (const node of this.nodes) {
-      if (node.object) node.object.visible = wanted.has(node.info.id);
-    }
+    this.order = order;
+    this.wanted = new Set(order);
     this.evict();
-    if (!moving) this.loadMore();
   }
 
   // Dispose the least recently shown nodes while more points than the memory budget are loaded.
   evict() {
     if (this.loadedPoints <= this.memoryBudget) return;
     const candidates = this.nodes
-      .filter((n) => n.object && !this.wanted.has(n.info.id) && n.info.id !== 0)
+      .filter((n) => n.object && !this.wanted.has(n.info.id) && !this.drawn.has(n.info.id) && n.info.id !== 0)
       .sort((a, b) => a.lastUsed - b.lastUsed);
     for (const node of candidates) {
       if (this.loadedPoints <= this.memoryBudget) break;
@@ -310,7 +512,7 @@ export class Viewer {
       this.loadNode(node).catch((e) => console.error(e)).finally(() => {
         node.loading = false;
         this.inFlight -= 1;
-        this.requestRender(true);
+        this.scheduleFrame(); // drawn by the next slice
         this.emit();
       });
     }
@@ -335,11 +537,11 @@ export class Viewer {
     geometry.computeBoundingSphere();
     node.object = new THREE.Points(geometry, this.material);
     node.object.userData.node = node;
-    node.object.visible = this.wanted ? this.wanted.has(node.info.id) : true;
+    node.object.visible = false; // drawn only with its slice
+    node.paint = true; // coloured by the slice that first draws it
     this.loadedPoints += n;
-    if (node.info.id === 0) this.learnFromRoot(node);
-    this.colourNode(node);
     this.scene.add(node.object);
+    if (node.info.id === 0) this.learnFromRoot(node);
   }
 
   // The root node is a uniform sample of the scan: the dense part frames the start view, and
@@ -375,13 +577,15 @@ export class Viewer {
       const buffer = await apiBytes(`/api/nodes/${node.info.id}/state`);
       if (!node.object) return; // evicted meanwhile
       this.setState(node, buffer);
-      this.colourNode(node);
+      node.paint = true;
     }));
     this.requestRender();
   }
 
-  colourNode(node) {
-    if (!node.object) return;
+  // Colour a node's points (done when a slice is about to draw it, so at most a slice's
+  // points are coloured and uploaded in a frame).
+  paintNode(node) {
+    node.paint = false;
     const { positions, rgb, intensity } = node.data;
     const { cls, working, pred } = node.state;
     const colour = node.object.geometry.getAttribute('rgbc');
@@ -408,7 +612,7 @@ export class Viewer {
   }
 
   recolour() {
-    for (const node of this.nodes) if (node.object) this.colourNode(node);
+    for (const node of this.nodes) if (node.object) node.paint = true;
     this.requestRender();
   }
 
@@ -421,15 +625,18 @@ export class Viewer {
   setPointSize(size) { this.pointSize = size; this.material.uniforms.size.value = size; this.requestRender(); }
   setBudget(budget) {
     this.pointBudget = budget;
-    this.movingBudget = Math.min(this.movingBudget, budget);
+    this.framePoints = Math.min(this.framePoints, budget);
     this.memoryBudget = Math.max(this.memoryBudget, Math.round(budget * 1.5));
     this.requestRender(true);
   }
 
+  // ``moving``: the camera moves or the view is not yet drawn up to its budget.
   stats() {
-    let points = 0, nodes = 0;
-    for (const node of this.nodes) if (node.object && node.object.visible) { points += node.info.count; nodes += 1; }
-    return { points, nodes, inFlight: this.inFlight, loadedPoints: this.loadedPoints, evicted: this.evicted, movingBudget: this.movingBudget, moving: this.moving || Boolean(this.settling) };
+    const refining = this.stale || this.order.some((id) => !this.drawn.has(id));
+    return {
+      points: this.drawnPoints, nodes: this.drawn.size, inFlight: this.inFlight, loadedPoints: this.loadedPoints,
+      evicted: this.evicted, framePoints: this.framePoints, moving: this.moving || refining,
+    };
   }
 
   // --- view state (remembered across reloads) ---------------------------------------------------
@@ -454,7 +661,7 @@ export class Viewer {
     this.controls.target.fromArray(state.target);
     if (camera.isOrthographicCamera) { camera.zoom = state.zoom; camera.updateProjectionMatrix(); }
     camera.lookAt(this.controls.target);
-    this.controls.update();
+    this.jump(() => this.controls.update());
     this.requestRender(true);
     return true;
   }
@@ -473,7 +680,7 @@ export class Viewer {
       const direction = camera.position.clone().sub(centre).normalize();
       camera.position.copy(centre).addScaledVector(direction, size * 1.1);
     }
-    this.controls.update();
+    this.jump(() => this.controls.update());
     this.requestRender(true);
   }
 
@@ -527,7 +734,7 @@ export class Viewer {
     const camera = this.camera;
     raycaster.setFromCamera(new THREE.Vector2(x, y), camera);
     raycaster.params.Points.threshold = this.metresPerPixel() * 6;
-    const objects = this.nodes.filter((n) => n.object && n.object.visible).map((n) => n.object);
+    const objects = [...this.drawn].map((id) => this.nodes[id].object).filter(Boolean);
     for (const hit of raycaster.intersectObjects(objects, false)) {
       const node = hit.object.userData.node;
       if (this.hidden[node.state.cls[hit.index]]) continue;
@@ -541,7 +748,7 @@ export class Viewer {
     object.geometry.dispose();
     object.geometry = new THREE.BufferGeometry();
     object.geometry.setAttribute('position', new THREE.BufferAttribute(new Float32Array(points.flat()), 3));
-    this.requestRender();
+    this.requestOverlay();
   }
 
   showPicks(picks) { this.setOverlayPoints(this.picked, picks); }
@@ -551,7 +758,7 @@ export class Viewer {
     this.measureLine.geometry.dispose();
     this.measureLine.geometry = new THREE.BufferGeometry();
     this.measureLine.geometry.setAttribute('position', new THREE.BufferAttribute(new Float32Array(points.flat()), 3));
-    this.requestRender();
+    this.requestOverlay();
   }
 
   // A wireframe of the fit's region (``null`` removes it).
@@ -570,7 +777,7 @@ export class Viewer {
       this.regionObject = new THREE.LineSegments(geometry, new THREE.LineBasicMaterial({ color: 0x40c0ff, depthTest: false }));
       this.overlay.add(this.regionObject);
     }
-    this.requestRender();
+    this.requestOverlay();
   }
 
   // Row-major view-projection matrix (clip = M [x y z 1]) of the current camera.
