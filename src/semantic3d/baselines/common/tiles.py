@@ -16,8 +16,9 @@ from __future__ import annotations
 
 import shutil
 from collections.abc import Iterable, Iterator
+from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass
-from itertools import chain
+from itertools import chain, islice
 from pathlib import Path
 from typing import Protocol
 
@@ -133,12 +134,19 @@ class _WriterFactory(Protocol):
 
 
 def iter_tiled_blocks(
-    model: TiledModel, chunks: Iterable[PointCloud], *, workdir: Path
+    model: TiledModel,
+    chunks: Iterable[PointCloud],
+    *,
+    workdir: Path,
+    parallel_tiles: int = 1,
 ) -> Iterator[LabelledBlock]:
     """Label a streamed scan tile by tile in this process (the ``Predictor`` protocol).
 
     The tile store lives in memory while it fits the writer's buffer, else under
-    ``workdir``; it is removed afterwards.
+    ``workdir``; it is removed afterwards. ``parallel_tiles`` > 1 labels that many tiles
+    at a time on threads (for a ``label_tile`` that releases the GIL, as torch and numpy
+    do): blocks come in completion order, each tile's labels are the same, memory is that
+    of the tiles in flight.
     """
     tiles_dir = workdir / "tiles"
 
@@ -147,6 +155,24 @@ def iter_tiled_blocks(
 
     with TemporaryTileStore.adopt(spill_scan(model, chunks, writer_of)) as store:
         tiled = len(store.tiles) > 1
-        for tile in store.tiles:
-            indices, labels = model.label_tile(store, tile)
-            yield LabelledBlock(indices, labels, store.n_points, tiled=tiled)
+        if parallel_tiles <= 1 or len(store.tiles) == 1:
+            for tile in store.tiles:
+                indices, labels = model.label_tile(store, tile)
+                yield LabelledBlock(indices, labels, store.n_points, tiled=tiled)
+            return
+        with ThreadPoolExecutor(parallel_tiles, thread_name_prefix="label-tile") as pool:
+            pending: set[Future[tuple[NDArray[np.int64], NDArray[np.uint8]]]] = set()
+            tiles = iter(store.tiles)
+            try:
+                while True:
+                    for tile in islice(tiles, parallel_tiles + 1 - len(pending)):
+                        pending.add(pool.submit(model.label_tile, store, tile))
+                    if not pending:
+                        return
+                    finished, pending = wait(pending, return_when=FIRST_COMPLETED)
+                    for future in finished:
+                        indices, labels = future.result()
+                        yield LabelledBlock(indices, labels, store.n_points, tiled=tiled)
+            finally:
+                for future in pending:
+                    future.cancel()
