@@ -96,13 +96,17 @@ class LocalAggregation(nn.Module):
     def __init__(self, d_out: int) -> None:
         super().__init__()
         half = d_out // 2
+        self.scale_positions = nn.BatchNorm1d(10, momentum=0.1, eps=1e-3, affine=False)
         self.encode_1 = SharedMlp(10, half)
         self.pool_1 = AttentivePooling(d_out, half)
         self.encode_2 = SharedMlp(half, half)
         self.pool_2 = AttentivePooling(d_out, d_out)
 
     def forward(self, xyz: Any, features: Any, neighbours: Any) -> Any:
-        encoded = self.encode_1(relative_positions(xyz, neighbours))
+        positions = relative_positions(xyz, neighbours)
+        shape = positions.shape
+        positions = self.scale_positions(positions.reshape(-1, 10)).reshape(shape)
+        encoded = self.encode_1(positions)
         pooled = self.pool_1(torch.cat([_gather(features, neighbours), encoded], dim=-1))
         encoded = self.encode_2(encoded)
         return self.pool_2(torch.cat([_gather(pooled, neighbours), encoded], dim=-1))
