@@ -291,15 +291,20 @@ try:
     app(sys.argv[1:], standalone_mode=False)
 finally:
     usage = resource.getrusage(resource.RUSAGE_SELF)
-    print(json.dumps({"cpu_s": usage.ru_utime + usage.ru_stime, "peak_rss_mib": usage.ru_maxrss / 1024}))
+    with open("/proc/self/status") as status:
+        peak = next(int(line.split()[1]) for line in status if line.startswith("VmHWM"))
+    print(json.dumps({"cpu_s": usage.ru_utime + usage.ru_stime, "peak_rss_mib": peak / 1024}))
 """
-"""A fresh interpreter running one command and printing its CPU time and peak RSS."""
+"""A fresh interpreter running one command and printing its CPU time and peak RSS (VmHWM:
+``ru_maxrss`` survives ``execve`` and would report the parent's peak)."""
 
 
-def _predict_command(model: Path, scan: Path, out: Path, baseline: str) -> list[str]:
+def _predict_command(model: Path, scan: Path, out: Path, baseline: str, *extra: str) -> list[str]:
+    """``predict`` of one scan, or of every scan of a folder (``scan`` a folder)."""
+    where = ["--data", str(scan)] if scan.is_dir() else [str(scan)]
     return [
-        sys.executable, "-c", _CHILD, "baseline", baseline, "predict", str(scan),
-        "--model", str(model), "--out", str(out), "--overwrite",
+        sys.executable, "-c", _CHILD, "baseline", baseline, "predict", *where,
+        "--model", str(model), "--out", str(out), "--overwrite", *extra,
     ]  # fmt: skip
 
 
@@ -314,8 +319,10 @@ def _timed_run(command: list[str], env: dict[str, str]) -> dict[str, float]:
     return {"wall_s": wall, **measured}
 
 
-def speed(folder: Path, batches: int, data: Path) -> dict[str, Any]:
-    """End-to-end ``predict`` of one Oakland scan by both baselines, fresh processes."""
+def speed(folder: Path, batches: int, data: Path, model_file: Path | None) -> dict[str, Any]:
+    """End-to-end ``predict --data`` of the 10 Oakland scans (1 M points) by both
+    baselines, each a fresh process with its model loaded once (the models trained on the
+    first 8 scans, or ``model_file``)."""
     import dataclasses
 
     import torch
@@ -336,20 +343,26 @@ def speed(folder: Path, batches: int, data: Path) -> dict[str, Any]:
         config, training=dataclasses.replace(config.training, n_batches=batches)
     )
     model_path = folder / "speed.rla"
-    model = train_randla_model(scans[:8], config=config, workdir=folder)
+    if model_file is not None:
+        from semantic3d.baselines.randla.persistence import load_model
+
+        model = load_model(model_file)
+    else:
+        model = train_randla_model(scans[:8], config=config, workdir=folder)
     save_model(model, model_path)
     cov_path = folder / "speed.s3d"
     save_covariance(train_covariance_model(scans[:8], config=CovarianceConfig()), cov_path)
-    scan = scans[9].points_path
-    n_points = 100_000 if "oakland" in scan.name else 0
-    results: dict[str, Any] = {"scan": scan.name, "n_points": n_points, "load_start": _load()}
+    n_points = sum(sum(part.size for part in s.iter_labels()) for s in scans)
+    results: dict[str, Any] = {"data": str(data), "n_points": n_points, "load_start": _load()}
     for threads in (1, 2):
         env = {"OMP_NUM_THREADS": str(threads), "NUMBA_NUM_THREADS": str(threads)}
         for name, path, baseline in (
             ("randla", model_path, "randla"),
             ("covariance", cov_path, "covariance"),
         ):
-            run = _timed_run(_predict_command(path, scan, folder / f"{name}.labels", baseline), env)
+            extra = ("--parallel-scans", "1") if baseline == "covariance" and threads == 1 else ()
+            command = _predict_command(path, data, folder / name, baseline, *extra)
+            run = _timed_run(command, env)
             run["points_per_s"] = n_points / run["wall_s"]
             run["points_per_cpu_s"] = n_points / run["cpu_s"]
             results[f"{name}_threads{threads}"] = run
@@ -408,6 +421,7 @@ def main() -> None:
     parser.add_argument("--jobs", type=int, default=2, help="fold runs at a time (processes)")
     parser.add_argument("--sizes", default="1000000,4000000,16000000")
     parser.add_argument("--sim-points", type=int, default=500_000)
+    parser.add_argument("--model", type=Path, default=None, help="speed: this model, untrained")
     parser.add_argument("--data", type=Path, default=OAKLAND, help="the Oakland scans")
     parser.add_argument("--quick", action="store_true", help="a small version of every section")
     parser.add_argument(
@@ -441,11 +455,13 @@ def main() -> None:
     if "sim" in sections:
         results["sim"] = simulated_transfer(args.sim_points, args.batches, args.workdir / "sim")
     if "speed" in sections and args.data.is_dir():
-        results["speed"] = speed(args.workdir / "speed", args.batches or 300, args.data)
+        results["speed"] = speed(args.workdir / "speed", args.batches or 300, args.data, args.model)
     if "memory" in sections:
         model_path = args.workdir / "speed" / "speed.rla"
         if not model_path.is_file():
-            results["speed"] = speed(args.workdir / "speed", args.batches or 300, args.data)
+            results["speed"] = speed(
+                args.workdir / "speed", args.batches or 300, args.data, args.model
+            )
         sizes = [int(s) for s in args.sizes.split(",")]
         results["memory"] = memory(sizes, args.workdir / "memory", model_path)
     if results:

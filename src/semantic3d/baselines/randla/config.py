@@ -29,10 +29,10 @@ from its preset and changes only what it names.
 
     [training]
     batch_size = 4
-    n_batches = 700
+    n_batches = 800
     learning_rate = 0.01
     lr_decay = 0.95
-    decay_every = 35
+    decay_every = 100
     seed = 0
 
     [prediction]
@@ -218,11 +218,11 @@ class TrainingConfig:
     """
 
     batch_size: int = 4
-    n_batches: int = 700
+    n_batches: int = 800
     round_batches: int = 25
     learning_rate: float = 0.01
     lr_decay: float = 0.95
-    decay_every: int = 35
+    decay_every: int = 100
     centres: str = "balanced"
     class_weights: str = "sqrt"
     rotate: bool = True

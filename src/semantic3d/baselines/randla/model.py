@@ -24,6 +24,7 @@ bfloat16 autocast (``[prediction] half``), compiled with ``torch.compile`` when
 from __future__ import annotations
 
 import logging
+import tempfile
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
@@ -263,8 +264,6 @@ class RandlaModel:
 
     def label_cloud(self, cloud: PointCloud, *, workdir: Path | None = None) -> NDArray[np.uint8]:
         """Label values of every point of an in-memory cloud (tiled as any scan is)."""
-        import tempfile
-
         out = np.zeros(cloud.n_points, np.uint8)
         with tempfile.TemporaryDirectory(prefix="s3d-randla-", dir=workdir) as scratch:
             for block in self.iter_labelled_blocks([cloud], workdir=Path(scratch)):

@@ -20,6 +20,7 @@ every checkpoint; a resumed run gives the model of the run that was not interrup
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import math
 import time
@@ -270,8 +271,6 @@ def _tile_scan(
 
 def _training_grid_config(config: RandlaConfig) -> RandlaConfig:
     """The configuration whose tiles are the training stores' (``training.tile_size_m``)."""
-    import dataclasses
-
     blocks = dataclasses.replace(config.blocks, tile_size_m=config.training.tile_size_m)
     return dataclasses.replace(config, blocks=blocks)
 
