@@ -464,8 +464,10 @@ def main() -> None:
             )
         sizes = [int(s) for s in args.sizes.split(",")]
         results["memory"] = memory(sizes, args.workdir / "memory", model_path)
-    if results:
-        _write(OUT / ("bench_randla_quick.json" if args.quick else "bench_randla.json"), results)
+    if results:  # sections run now replace their earlier results; the others are kept
+        path = OUT / ("bench_randla_quick.json" if args.quick else "bench_randla.json")
+        earlier = json.loads(path.read_text()) if path.is_file() else {}
+        _write(path, {**earlier, **results})
 
 
 if __name__ == "__main__":
