@@ -402,6 +402,7 @@ def memory(sizes: list[int], folder: Path, model_path: Path) -> dict[str, Any]:
             flush=True,
         )
         out.unlink()
+        out.with_name(out.name + ".json").unlink(missing_ok=True)
     return results
 
 
