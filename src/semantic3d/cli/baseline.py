@@ -339,7 +339,9 @@ def register(app: typer.Typer) -> None:
     """Add the ``baseline`` command group to ``app``."""
     from semantic3d.cli.baseline_cnn import cnn_app
     from semantic3d.cli.baseline_image import image_app
+    from semantic3d.cli.baseline_randla import randla_app
 
     baseline_app.add_typer(cnn_app, name="cnn")
     baseline_app.add_typer(image_app, name="image")
+    baseline_app.add_typer(randla_app, name="randla")
     app.add_typer(baseline_app, name="baseline")

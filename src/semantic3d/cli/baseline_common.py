@@ -19,6 +19,7 @@ from semantic3d.cli import console as ui
 from semantic3d.cli.console import escape, fail, plural
 
 if TYPE_CHECKING:
+    from semantic3d.baselines.common.crossval import CrossValidationResult
     from semantic3d.baselines.common.run import PredictionRunSet
     from semantic3d.baselines.common.submission import ScanToLabel
 
@@ -30,12 +31,16 @@ __all__ = [
     "ChallengeChoice",
     "DeviceChoice",
     "challenge_option",
+    "cross_validation_document",
     "data_option",
+    "label_scans",
     "out_option",
+    "print_folds",
     "print_runs",
     "scan_argument",
     "scan_names",
     "scans_and_target",
+    "training_bar",
 ]
 
 SCANS_HELP = "Scan names (NAME of NAME.txt) to use, repeatable or comma-separated; default all."
@@ -151,3 +156,120 @@ def print_runs(result: PredictionRunSet, *, zipped: bool, challenge: str | None)
             highlight=False,
             soft_wrap=True,
         )
+
+
+def training_bar(bar: Any, task: Any, *, stages: dict[str, str] | None = None) -> Any:
+    """A progress callback for a network's training (a ``TrainingProgress`` per batch):
+    the batch count, the round's loss and balanced accuracy; ``stages`` names what the
+    bar says while a preparation stage runs (``{"clouds": "drawing sub-clouds"}``)."""
+    named = stages or {}
+
+    def update(state: Any) -> None:
+        if state.stage != "train":
+            description = named.get(state.stage, state.stage)
+            bar.update(task, description=description, total=state.n_batches)
+            return
+        bar.update(
+            task,
+            completed=state.batch,
+            total=state.n_batches,
+            description=(
+                f"batch {state.batch}: loss {state.loss:.3f}, "
+                f"balanced accuracy {state.balanced_accuracy:.3f}"
+            ),
+        )
+
+    return update
+
+
+def print_folds(result: CrossValidationResult, *, title: str) -> None:
+    """A table of a cross-validation's folds and its pooled scores."""
+    from rich.table import Table
+
+    table = Table(title=title)
+    for column in ("held out", "points", "mIoU", "OA", "train s", "predict s"):
+        table.add_column(column, justify="right")
+    for fold in result.folds:
+        scores = fold.scores
+        table.add_row(
+            ", ".join(fold.test_scans),
+            f"{fold.n_points:,}",
+            f"{scores.mean_iou:.3f}",
+            f"{scores.overall_accuracy:.3f}",
+            f"{fold.training_time_s:.0f}",
+            f"{fold.prediction_time_s:.0f}",
+        )
+    ui.console.print(table)
+    pooled = result.scores
+    ui.console.print(
+        f"pooled: mIoU {pooled.mean_iou:.3f}, OA {pooled.overall_accuracy:.3f}", highlight=False
+    )
+
+
+def cross_validation_document(result: CrossValidationResult, **settings: Any) -> dict[str, Any]:
+    """A cross-validation as JSON-ready values: ``settings``, pooled scores, every fold."""
+    pooled = result.scores
+    return {
+        **settings,
+        "mean_iou": pooled.mean_iou,
+        "overall_accuracy": pooled.overall_accuracy,
+        "folds": [
+            {
+                "train_scans": list(f.train_scans),
+                "test_scans": list(f.test_scans),
+                "n_points": f.n_points,
+                "mean_iou": f.scores.mean_iou,
+                "overall_accuracy": f.scores.overall_accuracy,
+                "confusion": f.confusion.tolist(),
+                "training_time_s": f.training_time_s,
+                "prediction_time_s": f.prediction_time_s,
+            }
+            for f in result.folds
+        ],
+    }
+
+
+def label_scans(
+    model: Any,
+    scans: tuple[ScanToLabel, ...],
+    target: Path,
+    *,
+    workdir: Path | None,
+    overwrite: bool,
+    challenge: str | None,
+    cluster_options: tuple[str | None, int | None] = (None, None),
+) -> None:
+    """``predict``'s work for a loaded model: label ``scans`` into ``target`` with a progress
+    bar, on a Dask cluster when ``cluster_options`` (``--scheduler``, ``--workers``) name
+    one, and print the runs.
+
+    ``model`` is a :class:`~semantic3d.baselines.common.tiles.TiledModel`; on a cluster its
+    tiles are labelled by the workers
+    (:class:`~semantic3d.scale.predict_tiles.ClusterTilePredictor`, the same labels).
+    """
+    from semantic3d.baselines.common.prediction import predict_scans
+    from semantic3d.baselines.common.submission import is_zip_output
+    from semantic3d.cli.cluster import open_cluster
+    from semantic3d.cli.console import progress_bar
+
+    with open_cluster(*cluster_options) as cluster, progress_bar() as bar:
+        task = bar.add_task(f"labelling {plural(len(scans), 'scan')}", total=None)
+
+        def update(index: int, done: int, total: int) -> None:
+            bar.update(
+                task,
+                description=f"labelling {scans[index].name} ({index + 1}/{len(scans)})",
+                completed=done,
+                total=total or None,
+            )
+
+        predictor = model
+        if cluster is not None:
+            from semantic3d.scale.predict_tiles import ClusterTilePredictor
+
+            predictor = ClusterTilePredictor(model, cluster)
+        result = predict_scans(
+            predictor, scans, target, workdir=workdir, progress=update, overwrite=overwrite
+        )
+        bar.update(task, completed=result.n_points, total=result.n_points)
+    print_runs(result, zipped=is_zip_output(target), challenge=challenge)

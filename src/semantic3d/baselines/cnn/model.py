@@ -33,9 +33,10 @@ from semantic3d.baselines.cnn.config import CnnConfig
 from semantic3d.baselines.cnn.cubes import Occupancy, build_occupancy, compute_corner_cells
 from semantic3d.baselines.cnn.inference import InferenceNetwork
 from semantic3d.baselines.cnn.labelling import label_tile_points
+from semantic3d.baselines.common.device import DeviceError, resolve_device
 from semantic3d.baselines.common.prediction import LabelledBlock
 from semantic3d.core.classes import N_CLASSES
-from semantic3d.core.errors import Semantic3DError, require
+from semantic3d.core.errors import require
 from semantic3d.core.pointcloud import PointCloud
 from semantic3d.spatial.grid import TileGrid, TileKey
 from semantic3d.spatial.store import TemporaryTileStore, TileStore
@@ -46,23 +47,6 @@ torch: Any = require("torch", "torch")
 __all__ = ["CnnModel", "DeviceError", "resolve_device"]
 
 logger = logging.getLogger(__name__)
-
-
-class DeviceError(Semantic3DError, ValueError):
-    """A torch device that this machine does not have (``cuda`` without a GPU)."""
-
-
-def resolve_device(device: str) -> Any:
-    """``torch.device(device)``, checked: ``cuda`` needs a CUDA GPU."""
-    try:
-        resolved = torch.device(device)
-    except RuntimeError as exc:
-        raise DeviceError(f"device: expected cpu or cuda, found {device!r}") from exc
-    if resolved.type not in ("cpu", "cuda"):
-        raise DeviceError(f"device: expected cpu or cuda, found {device!r}")
-    if resolved.type == "cuda" and not torch.cuda.is_available():
-        raise DeviceError("device: cuda asked for, but torch sees no CUDA GPU on this machine")
-    return resolved
 
 
 @dataclass(frozen=True, slots=True)

@@ -41,7 +41,7 @@ from semantic3d.baselines.common.submission import (
     write_atomic_text,
     write_submission_zip,
 )
-from semantic3d.core.errors import ShapeError
+from semantic3d.core.errors import Semantic3DError, ShapeError
 from semantic3d.core.pointcloud import PointCloud
 from semantic3d.core.threads import numba_threads, thread_budget
 
@@ -50,6 +50,7 @@ __all__ = [
     "Predictor",
     "Progress",
     "RunProgress",
+    "ScanInputError",
     "parallel_scans_limit",
     "predict_scan",
     "predict_scans",
@@ -63,6 +64,12 @@ Progress = Callable[[int, int], None]
 RunProgress = Callable[[int, int, int], None]
 """``progress(scan_index, points_labelled_in_all_scans, n_points_of_all_scans)``; the total
 is an estimate (from the files' sizes) until every scan has been read."""
+
+
+class ScanInputError(Semantic3DError, ValueError):
+    """A scan a predictor cannot label: no point, or without an input its model was trained
+    with. Raised by a predictor without the scan's name; :func:`predict_scan` puts the
+    scan's path in front of the message."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -131,6 +138,7 @@ def predict_scan(
         GroundTruthOutputError: ``out_path`` is the scan's own ``NAME.labels``, its ground
             truth (refused even with ``overwrite``).
         ShapeError: the predictor left points without a label.
+        ScanInputError: the predictor cannot label this scan (no point, an input missing).
     """
     from semantic3d.io.formats import iter_points
     from semantic3d.io.labels import write_labels
@@ -149,13 +157,16 @@ def predict_scan(
         n_points = 0
         with LabelBuffer(scratch_dir / "labels.u8") as buffer:
             chunks = iter_points(points_path, chunk_size=chunk_size, sibling_labels=False)
-            for block in predictor.iter_labelled_blocks(chunks, workdir=scratch_dir):
-                tiled = tiled or block.tiled
-                n_points = block.n_scan_points
-                buffer.put(block.point_indices, block.labels, n_points)
-                done += block.point_indices.size
-                if progress is not None:
-                    progress(done, n_points)
+            try:
+                for block in predictor.iter_labelled_blocks(chunks, workdir=scratch_dir):
+                    tiled = tiled or block.tiled
+                    n_points = block.n_scan_points
+                    buffer.put(block.point_indices, block.labels, n_points)
+                    done += block.point_indices.size
+                    if progress is not None:
+                        progress(done, n_points)
+            except ScanInputError as exc:
+                raise ScanInputError(f"{points_path}: {exc}") from None
             if done != n_points:
                 raise ShapeError(
                     f"{points_path}: expected a label for each of {n_points} points, found {done}"
