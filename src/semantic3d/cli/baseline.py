@@ -27,6 +27,7 @@ from semantic3d.cli.baseline_common import (
     scan_argument,
     scan_names,
     scans_and_target,
+    scans_progress,
 )
 from semantic3d.cli.cluster import open_cluster, scheduler_option, workers_option
 from semantic3d.cli.console import (
@@ -226,15 +227,7 @@ def _predict(
         )
         ui.console.print(f"--parallel-scans: labelling one scan at a time ({why})")
     with open_cluster(*cluster_options) as cluster, progress_bar() as bar:
-        task = bar.add_task(f"labelling {plural(len(scans), 'scan')}", total=None)
-
-        def update(index: int, done: int, total: int) -> None:
-            bar.update(
-                task,
-                description=f"labelling {scans[index].name} ({index + 1}/{len(scans)})",
-                completed=done,
-                total=total or None,
-            )
+        task, update = scans_progress(bar, scans)
 
         predictor: Predictor = model
         if cluster is not None:  # tiles labelled by the workers (same labels)

@@ -31,6 +31,7 @@ from semantic3d.cli.baseline_common import (
     scan_argument,
     scan_names,
     scans_and_target,
+    scans_progress,
 )
 from semantic3d.cli.cluster import open_cluster, scheduler_option, workers_option
 from semantic3d.cli.console import (
@@ -237,16 +238,7 @@ def predict(
         refuse_unsafe_outputs(target, scans_to_label, overwrite=overwrite)
         model = load_model(model_path, device=device.value)
         with open_cluster(scheduler, workers) as cluster, progress_bar() as bar:
-            task = bar.add_task(f"labelling {plural(len(scans_to_label), 'scan')}", total=None)
-
-            def update(index: int, done: int, total: int) -> None:
-                bar.update(
-                    task,
-                    description=f"labelling {scans_to_label[index].name} "
-                    f"({index + 1}/{len(scans_to_label)})",
-                    completed=done,
-                    total=total or None,
-                )
+            task, update = scans_progress(bar, scans_to_label)
 
             predictor: Predictor = model
             if cluster is not None:  # tiles labelled by the workers (same labels)

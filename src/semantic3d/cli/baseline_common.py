@@ -19,7 +19,12 @@ from semantic3d.cli import console as ui
 from semantic3d.cli.console import escape, fail, plural
 
 if TYPE_CHECKING:
+    from collections.abc import Sequence
+
+    from rich.progress import Progress, TaskID
+
     from semantic3d.baselines.common.crossval import CrossValidationResult
+    from semantic3d.baselines.common.prediction import RunProgress
     from semantic3d.baselines.common.run import PredictionRunSet
     from semantic3d.baselines.common.submission import ScanToLabel
 
@@ -40,6 +45,7 @@ __all__ = [
     "scan_argument",
     "scan_names",
     "scans_and_target",
+    "scans_progress",
     "training_bar",
 ]
 
@@ -229,6 +235,22 @@ def cross_validation_document(result: CrossValidationResult, **settings: Any) ->
     }
 
 
+def scans_progress(bar: Progress, scans: Sequence[ScanToLabel]) -> tuple[TaskID, RunProgress]:
+    """A task of ``bar`` for a run over ``scans`` and the ``progress`` callback that moves
+    it (``labelling NAME (2/7)``), for ``predict_scans`` and its kind."""
+    task = bar.add_task(f"labelling {plural(len(scans), 'scan')}", total=None)
+
+    def update(index: int, done: int, total: int) -> None:
+        bar.update(
+            task,
+            description=f"labelling {scans[index].name} ({index + 1}/{len(scans)})",
+            completed=done,
+            total=total or None,
+        )
+
+    return task, update
+
+
 def label_scans(
     model: Any,
     scans: tuple[ScanToLabel, ...],
@@ -253,15 +275,7 @@ def label_scans(
     from semantic3d.cli.console import progress_bar
 
     with open_cluster(*cluster_options) as cluster, progress_bar() as bar:
-        task = bar.add_task(f"labelling {plural(len(scans), 'scan')}", total=None)
-
-        def update(index: int, done: int, total: int) -> None:
-            bar.update(
-                task,
-                description=f"labelling {scans[index].name} ({index + 1}/{len(scans)})",
-                completed=done,
-                total=total or None,
-            )
+        task, update = scans_progress(bar, scans)
 
         predictor = model
         if cluster is not None:

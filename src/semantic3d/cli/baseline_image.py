@@ -23,6 +23,7 @@ from semantic3d.cli.baseline_common import (
     scan_argument,
     scan_names,
     scans_and_target,
+    scans_progress,
 )
 from semantic3d.cli.console import (
     MARKUP_MODE,
@@ -143,16 +144,7 @@ def predict(
         refuse_unsafe_outputs(target, scans_to_label, overwrite=overwrite)
         model = load_model(model_path)
         with progress_bar() as bar:
-            task = bar.add_task(f"labelling {plural(len(scans_to_label), 'scan')}", total=None)
-
-            def update(index: int, done: int, total: int) -> None:
-                bar.update(
-                    task,
-                    description=f"labelling {scans_to_label[index].name} "
-                    f"({index + 1}/{len(scans_to_label)})",
-                    completed=done,
-                    total=total or None,
-                )
+            _, update = scans_progress(bar, scans_to_label)
 
             result = predict_image_scans(
                 model,

@@ -21,9 +21,13 @@ from semantic3d.cli.baseline_common import (
     SCANS_HELP,
     ChallengeChoice,
     DeviceChoice,
+    challenge_option,
     cross_validation_document,
+    data_option,
     label_scans,
+    out_option,
     print_folds,
+    scan_argument,
     scan_names,
     scans_and_target,
     training_bar,
@@ -37,6 +41,7 @@ from semantic3d.cli.console import (
     plural,
     progress_bar,
     refuse_existing,
+    threads_option,
 )
 
 if TYPE_CHECKING:
@@ -106,6 +111,7 @@ def train(
     ),
     workdir: Path | None = typer.Option(None, "--workdir", help="Scratch folder for tiles."),
     overwrite: bool = typer.Option(False, "--overwrite", help=OVERWRITE_HELP),
+    threads: int | None = threads_option(),
 ) -> None:
     """Train RandLA-Net on labelled scans (sub-clouds drawn from their tiles), save the model.
 
@@ -151,26 +157,15 @@ def train(
 
 @randla_app.command()
 def predict(
-    scan: Path | None = typer.Argument(None, help="One scan to label (any format); or use --data."),
+    scan: Path | None = scan_argument(),
     model_path: Path = typer.Option(..., "--model", help="Model file from `train`."),
-    data: Path | None = typer.Option(
-        None, "--data", file_okay=False, help="Label every scan of this folder (NAME.txt)."
-    ),
-    out: Path | None = typer.Option(
-        None,
-        "--out",
-        help="A folder (default ./predictions), a zip archive ready for `submit` (ends in "
-        ".zip) or, for one scan, a .labels file.",
-    ),
-    challenge: ChallengeChoice | None = typer.Option(
-        None,
-        "--challenge",
-        "-c",
-        help="With --data: label the challenge's scans under their official submission names.",
-    ),
+    data: Path | None = data_option(),
+    out: Path | None = out_option(),
+    challenge: ChallengeChoice | None = challenge_option(),
     device: DeviceChoice = typer.Option(DeviceChoice.CPU, "--device", help="cpu or cuda."),
     workdir: Path | None = typer.Option(None, "--workdir", help="Scratch folder for tiles."),
     overwrite: bool = typer.Option(False, "--overwrite", help=OVERWRITE_HELP),
+    threads: int | None = threads_option(),
     scheduler: str | None = scheduler_option(),
     workers: int | None = workers_option(),
 ) -> None:
@@ -213,6 +208,7 @@ def cv(
     workdir: Path | None = typer.Option(None, "--workdir", help="Scratch folder for tiles."),
     out: Path | None = typer.Option(None, "--out", help="Write the scores as JSON here."),
     overwrite: bool = typer.Option(False, "--overwrite", help=OVERWRITE_HELP),
+    threads: int | None = threads_option(),
 ) -> None:
     """Cross-validate: train on all folds but one, label every point of the held-out scans."""
     with guarded():

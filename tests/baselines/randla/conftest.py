@@ -14,7 +14,7 @@ import pytest
 from semantic3d.core import PointCloud
 from tests.baselines.conftest import write_scan
 
-if importlib.util.find_spec("torch") is None or importlib.util.find_spec("pgeof") is None:
+if importlib.util.find_spec("torch") is None:
     collect_ignore_glob = ["test_*.py"]  # the [randla] extra is not installed
 
 TINY_TOML = """

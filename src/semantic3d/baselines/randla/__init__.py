@@ -2,8 +2,8 @@
 pooling and an encoder-decoder over voxel-reduced blocks, trained on sub-clouds of tiles
 and applied to scans of any size tile by tile. See docs/baseline_randla.md.
 
-Needs the ``[randla]`` extra (``pip install 'semantic3d[randla]'``: torch and pgeof);
-without it, importing any name that needs them raises
+Needs the ``[randla]`` extra (``pip install 'semantic3d[randla]'``: torch);
+without it, importing any name that needs it raises
 :class:`~semantic3d.core.errors.MissingExtraError`. Names are loaded on first use.
 """
 

@@ -1,7 +1,9 @@
 """k nearest neighbours of a sub-cloud's points: the compiled k-d tree on the CPU, torch on a GPU.
 
-On the CPU the search is pgeof's nanoflann k-d tree (the one :mod:`semantic3d.features`
-uses; compiled, all cores, float32 coordinates relative to the sub-cloud's centre). On a
+On the CPU the search is the project's compiled k-d tree (:class:`~semantic3d.spatial.kdtree.KdTree`,
+the one :mod:`semantic3d.features` uses: exact, built and searched on numba's threads
+without the GIL, float32 coordinates relative to the sub-cloud's centre, equal distances
+ordered by index). On a
 GPU it is a brute-force search in torch, a block of queries at a time: every distance
 computed on the device and the ``k`` smallest kept (``torch.topk``), which is what a GPU
 does well for the block sizes a network pass holds (tens to hundreds of thousands of
@@ -32,7 +34,8 @@ def knn_cpu(points: NDArray[np.float32], queries: NDArray[np.float32], k: int) -
         queries: ``(m, 3)`` float32 query points.
         k: neighbours per query (repeated from the last one found when ``n < k``).
     """
-    pgeof: Any = require("pgeof", "randla")
+    from semantic3d.spatial.kdtree import KdTree
+
     points = _checked(points, "points")
     queries = _checked(queries, "queries")
     n = points.shape[0]
@@ -41,8 +44,8 @@ def knn_cpu(points: NDArray[np.float32], queries: NDArray[np.float32], k: int) -
     k_eff = min(k, n)
     if queries.shape[0] == 0:
         return np.empty((0, k), np.int64)
-    found, _ = pgeof.knn_search(points, queries, k_eff)
-    indices = np.asarray(found, dtype=np.int64).reshape(-1, k_eff)
+    found, _ = KdTree(points).query(queries, k=k_eff)
+    indices = found.astype(np.int64)
     return _padded(indices, k)
 
 
