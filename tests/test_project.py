@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import shutil
 import subprocess
 import sys
@@ -28,6 +29,37 @@ def test_readme_starts_with_the_two_commands() -> None:
     head = readme[: readme.index("```", readme.index("```") + 3)]
     assert "make demo" in head and "make test" in head
     assert "make test" in (ROOT / ".ci" / "run").read_text()
+
+
+def _make_dry_run(target: str, venv: Path) -> list[str]:
+    """The commands ``make TARGET`` would run on a fresh clone (``make -n``: none is run)."""
+    make = shutil.which("make")
+    if make is None:
+        pytest.skip("make is not installed")
+    # Not the variables of a `make test` that may be running this suite.
+    inherited = ("MAKEFLAGS", "MFLAGS", "MAKELEVEL", "PYTEST_ARGS", "DEMO_ARGS")
+    env = {key: value for key, value in os.environ.items() if key not in inherited}
+    done = subprocess.run(
+        [make, "-n", target, f"VENV={venv}"], cwd=ROOT, capture_output=True, text=True, env=env
+    )
+    assert done.returncode == 0, done.stderr
+    return done.stdout.splitlines()
+
+
+def test_make_demo_installs_only_the_demo_extra_and_says_how_much(tmp_path: Path) -> None:
+    # A fresh clone: `make demo` used to install [all] (6.2 GB with CUDA torch); it installs
+    # the demo extra (no torch, Dask or image stack), says what and how big, shows progress.
+    commands = _make_dry_run("demo", tmp_path / ".venv")
+    installs = [line for line in commands if "pip install" in line and "-e" in line.split()]
+    assert len(installs) == 1 and installs[0].endswith("-e '.[demo]'"), commands
+    assert "--progress-bar on" in installs[0] and "--quiet" not in installs[0]
+    said = " ".join(commands[: commands.index(installs[0])])
+    assert "installing semantic3d" in said and " MB" in said, said
+    assert commands[-1].endswith("/bin/semantic3d demo --serve")
+    # `make test` keeps every extra and the test tools.
+    tests = _make_dry_run("test", tmp_path / ".venv")
+    assert any(line.endswith("-e '.[test]'") for line in tests), tests
+    assert "-m pytest -n 2" in tests[-1]
 
 
 def test_ruff_lint_is_clean() -> None:

@@ -62,6 +62,43 @@ def test_a_missing_extra_names_the_extra_not_the_module() -> None:
     assert message == "this feature needs the optional extra [ml]: pip install 'semantic3d[ml]'"
 
 
+_WITHOUT = """
+import sys
+from importlib.abc import MetaPathFinder
+
+class Absent(MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name.partition(".")[0] in {absent!r}:
+            raise ModuleNotFoundError(f"No module named {{name!r}}", name=name)
+        return None
+
+sys.meta_path.insert(0, Absent())
+from semantic3d.cli.app import main
+main()
+"""
+
+
+def test_a_command_without_its_extra_names_the_extra_in_one_line(tmp_path: Path) -> None:
+    # scikit-learn and scipy missing, as after `pip install semantic3d`: the user reads
+    # which extra to install, not which module (`'sklearn.base'`) failed to import.
+    (tmp_path / "data").mkdir()
+    result = subprocess.run(
+        [
+            *(sys.executable, "-c", _WITHOUT.format(absent=("sklearn", "scipy"))),
+            *("baseline", "covariance", "train", "--data", "data", "--out", "m.s3d"),
+        ],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        timeout=120,
+        check=False,
+    )
+    assert result.returncode == 2
+    line = _one_line(result)
+    assert line == "error: this feature needs the optional extra [ml]: pip install 'semantic3d[ml]'"
+    assert not (tmp_path / "m.s3d").exists()
+
+
 def test_an_existing_output_names_the_flag_on_the_command_line(tmp_path: Path) -> None:
     from semantic3d.cli.console import _error_message
 

@@ -133,6 +133,21 @@ def test_caches_are_keyed_by_path_and_rebuilt_when_the_scan_changes(
     assert _listing(other) == {"scan.txt"}
 
 
+def test_the_cache_folder_is_the_option_then_the_variable_then_the_users(
+    scan_folder, tmp_path, monkeypatch
+) -> None:
+    from semantic3d.labelling.cachedir import default_cache_dir
+
+    explicit = tmp_path / "explicit"  # --cache-dir
+    session = open_label_session(scan_folder / "scan.txt", read_only=True, cache_dir=explicit)
+    assert explicit in session.scan.path.parents and explicit in session.lod.directory.parents
+    session.close()
+    assert _listing(scan_folder) == {"scan.txt", "scan.labels"}
+    monkeypatch.delenv(CACHE_DIR_ENV)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    assert default_cache_dir() == tmp_path / "xdg" / "semantic3d"  # platformdirs' user cache
+
+
 def _free_port() -> int:
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))
@@ -156,6 +171,23 @@ def test_cli_refuses_ground_truth_with_one_line(scan_folder) -> None:
     assert "pass --overwrite" in result.output and "Traceback" not in result.output
     outside = CliRunner().invoke(app, ["view", str(scan_folder / "scan.txt"), "--host", "0.0.0.0"])
     assert outside.exit_code == 2 and "loopback" in outside.output
+
+
+def test_cli_label_and_view_on_a_busy_port_are_one_line_before_any_work(scan_folder) -> None:
+    before = _listing(scan_folder)
+    with socket.socket() as holder:
+        holder.bind(("127.0.0.1", 0))
+        holder.listen()
+        port = str(holder.getsockname()[1])
+        for command in (["label"], ["view"]):
+            result = CliRunner().invoke(
+                app, [*command, str(scan_folder / "scan.txt"), "--port", port]
+            )
+            assert result.exit_code == 2, result.output
+            lines = [line for line in result.output.splitlines() if line.strip()]
+            assert len(lines) == 1 and f"port {port} on 127.0.0.1: cannot listen" in lines[0]
+            assert "pass --port" in lines[0]
+    assert _listing(scan_folder) == before  # refused before planning or caching anything
 
 
 def test_cli_label_says_where_labels_go_and_prints_the_secret_once(

@@ -255,6 +255,9 @@ def test_x_forwarded_for_is_believed_only_from_the_configured_proxy(tmp_path: Pa
     behind = make_settings(tmp_path / "data", proxy_headers=True)
     assert client_seen(behind, "127.0.0.1", "203.0.113.9") == "203.0.113.9"
     assert client_seen(behind, "198.51.100.7", "203.0.113.9") == "198.51.100.7"
+    # A client's own X-Forwarded-For kept by a proxy that appends to it: the address the
+    # trusted proxy added wins, never the one the client wrote.
+    assert client_seen(behind, "127.0.0.1", "198.51.100.1, 203.0.113.9") == "203.0.113.9"
     elsewhere = make_settings(tmp_path / "data", proxy_headers=True, forwarded_allow_ips="10.0.0.2")
     assert client_seen(elsewhere, "127.0.0.1", "203.0.113.9") == "127.0.0.1"
     assert client_seen(elsewhere, "10.0.0.2", "203.0.113.9") == "203.0.113.9"

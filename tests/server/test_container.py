@@ -135,6 +135,27 @@ def test_the_licence_ships_with_the_package() -> None:
     assert "exclude" not in project.partition("[tool.hatch")[2].partition("[tool.pytest")[0]
 
 
+def test_the_sdist_and_the_wheel_hold_the_licence(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Built as pip builds them (the project's build backend, called in the repository).
+    backend = pytest.importorskip("hatchling.build")
+    import tarfile
+    import zipfile
+
+    monkeypatch.chdir(ROOT)
+    sdist = tmp_path / backend.build_sdist(str(tmp_path))
+    wheel = tmp_path / backend.build_wheel(str(tmp_path))
+    licence = (ROOT / "LICENSE").read_bytes()
+    with tarfile.open(sdist) as archive:
+        top = sdist.name.removesuffix(".tar.gz")
+        member = archive.extractfile(f"{top}/LICENSE")
+        assert member is not None and member.read() == licence
+    with zipfile.ZipFile(wheel) as archive:
+        (name,) = [n for n in archive.namelist() if n.endswith(".dist-info/licenses/LICENSE")]
+        assert archive.read(name) == licence
+
+
 # With a container engine -----------------------------------------------------------------
 
 
