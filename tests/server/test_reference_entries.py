@@ -147,6 +147,12 @@ def test_a_reference_rows_method_page(harness: Harness) -> None:
     assert '<sup class="mark">*</sup>' in tml and "not present in the image data" in tml
     spg = harness.client.get("/challenges/reduced-8/references/spg").text
     assert "0.832" in spg and "SCF-Net" in spg  # where the values come from
+    # A value not read from its source says so; what the paper does not describe is not
+    # put in its mouth.
+    conv_point = harness.client.get("/challenges/semantic-8/references/convpoint").text
+    assert "the mIoU was not re-read from the paper" in conv_point
+    tml_pc = harness.client.get("/challenges/semantic-8/references/tml-pc").text
+    assert "back to the points the paper does not say" in tml_pc
     assert (
         'id="paper">none published'
         in harness.client.get("/challenges/semantic-8/references/harrisnet").text
