@@ -20,7 +20,7 @@ from semantic3d.baselines.cnn.cubes import build_occupancy, compute_cubes
 from semantic3d.baselines.cnn.inference import COMPILE_AFTER_POINTS, InferenceNetwork
 from semantic3d.baselines.cnn.labelling import label_tile_points
 from semantic3d.baselines.cnn.model import CnnModel
-from semantic3d.baselines.cnn.pipeline import Prefetched
+from semantic3d.baselines.common.pipeline import Prefetched
 from semantic3d.io.formats import read_points
 from tests.baselines.cnn.conftest import TINY
 

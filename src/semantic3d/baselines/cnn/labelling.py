@@ -1,6 +1,6 @@
 """Labelling a tile's points: the next batch's cubes are made while the network classifies.
 
-A producer thread (:class:`~.pipeline.Prefetched`, two batches ahead) makes the cubes of
+A producer thread (:class:`~semantic3d.baselines.common.pipeline.Prefetched`, two batches ahead) makes the cubes of
 each batch; the caller's thread runs the network (:class:`~.inference.InferenceNetwork`)
 and gathers class indices on the device, read back once per tile.
 
@@ -32,7 +32,7 @@ from semantic3d.baselines.cnn.cubes import (
     fill_cubes,
 )
 from semantic3d.baselines.cnn.inference import InferenceNetwork
-from semantic3d.baselines.cnn.pipeline import Prefetched
+from semantic3d.baselines.common.pipeline import Prefetched
 from semantic3d.core.errors import require
 
 torch: Any = require("torch", "torch")

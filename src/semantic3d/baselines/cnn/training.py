@@ -4,9 +4,10 @@ does not say how it fed the network).
 
 Each labelled scan is spilled once into a temporary tile store. Training runs in *rounds*
 of ``rotate_every`` mini-batches, each with its own draw of points and rotation about z
-(:mod:`.rounds`); a producer thread (:class:`~.pipeline.Prefetched`) makes round
-``r + 1``'s cubes (a thread pool of tiles, numba on all cores, or the GPU's kernels) while
-round ``r`` trains, so after the first round the network rarely waits for its input.
+(:mod:`.rounds`); a producer thread
+(:class:`~semantic3d.baselines.common.pipeline.Prefetched`) makes round ``r + 1``'s cubes
+(a thread pool of tiles, numba on all cores, or the GPU's kernels) while round ``r``
+trains, so after the first round the network rarely waits for its input.
 Adadelta and the cross-entropy loss; on a CUDA device under bfloat16 autocast
 (``[training] autocast``) with deterministic cuDNN algorithms. The loss and the confusion
 of the round are summed on the device and read every ``report_every`` batches (every
@@ -42,9 +43,9 @@ from semantic3d import __version__
 from semantic3d.baselines.cnn.config import CnnConfig, config_to_dict
 from semantic3d.baselines.cnn.model import CnnModel, resolve_device
 from semantic3d.baselines.cnn.network import build_network
-from semantic3d.baselines.cnn.pipeline import Prefetched
 from semantic3d.baselines.cnn.point_cubes_torch import unpack_cubes
 from semantic3d.baselines.cnn.rounds import Round, RoundProgress, TiledScan, make_round
+from semantic3d.baselines.common.pipeline import Prefetched
 from semantic3d.baselines.common.scans import LabelledScan, TrainingDataError
 from semantic3d.core.classes import N_CLASSES, class_by_value
 from semantic3d.core.errors import Semantic3DError, require

@@ -152,19 +152,21 @@ class Prefetched(Generic[T]):
         self.close()
 
 
-def _record_stream(item: Any, stream: Any) -> None:
-    """Mark the CUDA tensors of ``item`` (a tensor, or a tuple / list / object with
-    ``__slots__`` or ``__dict__`` holding tensors) as used by ``stream``."""
+def _record_stream(item: Any, stream: Any, depth: int = 0) -> None:
+    """Mark the CUDA tensors of ``item`` (a tensor, or tuples / lists / dicts / objects with
+    ``__slots__`` or ``__dict__`` holding them, nested) as used by ``stream``."""
     if isinstance(item, torch.Tensor):
         if item.is_cuda:
             item.record_stream(stream)
         return
-    if isinstance(item, tuple | list):
-        for part in item:
-            _record_stream(part, stream)
+    if depth > 8 or item is None or isinstance(item, str | bytes | int | float | bool):
         return
-    names = getattr(item, "__slots__", None) or list(getattr(item, "__dict__", {}))
-    for name in names:
-        value = getattr(item, name, None)
-        if isinstance(value, torch.Tensor | tuple | list):
-            _record_stream(value, stream)
+    if isinstance(item, tuple | list):
+        parts: Any = item
+    elif isinstance(item, dict):
+        parts = item.values()
+    else:
+        names = getattr(item, "__slots__", None) or list(getattr(item, "__dict__", {}))
+        parts = [getattr(item, name, None) for name in names]
+    for part in parts:
+        _record_stream(part, stream, depth + 1)

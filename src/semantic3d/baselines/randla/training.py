@@ -35,6 +35,7 @@ from numpy.typing import NDArray
 
 from semantic3d import __version__
 from semantic3d.baselines.common.device import resolve_device
+from semantic3d.baselines.common.pipeline import Prefetched
 from semantic3d.baselines.common.scans import LabelledScan, TrainingDataError
 from semantic3d.baselines.common.training import (
     CheckpointError,
@@ -63,6 +64,7 @@ __all__ = ["CheckpointError", "TrainingProgress", "class_weights", "train_randla
 logger = logging.getLogger(__name__)
 
 _CHECKPOINT_FORMAT = 1
+_WAIT_POLL_S = 0.25
 
 
 @dataclass(slots=True)
@@ -159,13 +161,25 @@ def train_randla_model(
         weights = torch.from_numpy(class_weights(totals, classes, training.class_weights))
         loss_fn = torch.nn.CrossEntropyLoss(weight=weights.to(torch_device), ignore_index=-1)
         network.train()
+        n_rounds = -(-training.n_batches // training.round_batches)
+        start = done // training.round_batches
+
+        def produce() -> Iterator[list[SubCloud]]:
+            for index in range(start, n_rounds):
+                length = min(
+                    training.round_batches, training.n_batches - index * training.round_batches
+                )
+                yield _round_clouds(tiled, classes, config, index, length, torch_device)
+
+        # round r + 1's sub-clouds are drawn on a thread of their own while round r trains
+        rounds = stack.enter_context(
+            Prefetched(produce, depth=1, device=torch_device, name="training-clouds")
+        )
         while done < training.n_batches:
             round_index = done // training.round_batches
             first = round_index * training.round_batches
             n_round = min(training.round_batches, training.n_batches - first)
-            if progress is not None:
-                progress(TrainingProgress(done, training.n_batches, math.nan, math.nan, "clouds"))
-            clouds = _round_clouds(tiled, classes, config, round_index, n_round, torch_device)
+            clouds = _next_round(rounds, done, training.n_batches, progress)
             confusion = np.zeros((len(classes), len(classes)), np.int64)
             losses: list[float] = []
             for batch in range(done - first, n_round):
@@ -206,6 +220,23 @@ def train_randla_model(
         training_time_s=time.perf_counter() - started,
         package_version=__version__,
     )
+
+
+def _next_round(
+    rounds: Prefetched[list[SubCloud]],
+    done: int,
+    n_batches: int,
+    progress: TrainingProgressCallback | None,
+) -> list[SubCloud]:
+    """The next round's sub-clouds (reported once as the ``"clouds"`` stage: drawn ahead,
+    they are often there already)."""
+    if progress is not None:
+        progress(TrainingProgress(done, n_batches, math.nan, math.nan, "clouds"))
+    while True:
+        arrived, clouds = rounds.poll(_WAIT_POLL_S)
+        if arrived:
+            assert clouds is not None
+            return clouds
 
 
 def _step(
