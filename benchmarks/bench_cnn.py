@@ -59,7 +59,7 @@ PAPER_BATCHES = 74_700
 def set_data(folder: Path) -> None:
     """Read the Oakland samples from ``folder`` (children get it through the environment)."""
     global DATA
-    DATA = Path(folder)
+    DATA = Path(folder).resolve()  # predict links scans into a scratch folder
     os.environ["BENCH_CNN_DATA"] = str(DATA)
 
 
@@ -487,9 +487,13 @@ def bench_predict(device: str, edge_m: float, floors: dict[str, Any]) -> dict[st
             runs["point_centred_float32_eager"] = {"prediction": eager}
         for name, options in runs.items():
             child = [sys.executable, __file__, "--child", str(folder), device, json.dumps(options)]
-            done = subprocess.run(child, check=True, capture_output=True, text=True)
+            done = subprocess.run(child, capture_output=True, text=True)
+            if done.returncode != 0:  # the error goes in the report; the other runs go on
+                results[name] = {"error": done.stderr.strip().splitlines()[-40:]}
+                print(f"predict {name} failed:\n{done.stderr[-4000:]}", file=sys.stderr)
+                continue
             results[name] = json.loads(done.stdout.strip().splitlines()[-1])
-    points = results["point_centred"]["points"]
+    points = next((r["points"] for r in results.values() if "points" in r), 0)
     element = 2 if device == "cuda" else 4
     results["floor"] = _floors(
         points, floors, flops=network_flops(), moved=activation_bytes(element)
@@ -561,6 +565,132 @@ def bench_train(
     }
 
 
+# -- batch sizes and profiles (GPU) -----------------------------------------------------------
+def bench_sweep(device: str, floors: dict[str, Any]) -> dict[str, Any]:
+    """Cube kernels and the network at growing batches; where the time of a training step,
+    a batch of cubes and a compiled network call goes (the profiler's top kernels)."""
+    import torch
+    from torch.profiler import ProfilerActivity, profile
+
+    from semantic3d.baselines.cnn.config import CnnConfig, CubeConfig
+    from semantic3d.baselines.cnn.cubes import build_occupancy, compute_corner_cells
+    from semantic3d.baselines.cnn.cubes_torch import DeviceOccupancy
+    from semantic3d.baselines.cnn.inference import InferenceNetwork
+    from semantic3d.baselines.cnn.network import build_network
+    from semantic3d.baselines.cnn.point_cubes_torch import DevicePointCubes
+    from semantic3d.spatial.voxels import grid_origin
+
+    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device == "cuda" else [])
+    sort = "cuda_time_total" if device == "cuda" else "cpu_time_total"
+
+    def top(run: Callable[[], Any], rows: int = 12) -> list[str]:
+        with profile(activities=activities) as prof:
+            run()
+            _sync(device)
+        return prof.key_averages().table(sort_by=sort, row_limit=rows).splitlines()
+
+    result: dict[str, Any] = {}
+    xyz = _load_xyz()
+    cubes = CubeConfig(centring="point")
+    origin = grid_origin(xyz[0], coarsest_voxel_size_m=max(cubes.voxel_sizes_m))
+    occupancy = build_occupancy(
+        xyz, origin=origin, voxel_sizes_m=cubes.voxel_sizes_m, centring="point"
+    )
+    corner = build_occupancy(xyz, origin=origin, voxel_sizes_m=cubes.voxel_sizes_m)
+    held = DevicePointCubes(occupancy, device=device, cube_voxels=16)
+    corners_held = DeviceOccupancy(corner, device=device, cube_voxels=16)
+    rng = np.random.default_rng(1)
+    sizes = (4096, 16384, 65536) if device == "cuda" else (256, 1024)
+
+    def cube_rates(n: int) -> None:
+        queries = xyz[rng.choice(len(xyz), min(n, len(xyz)), replace=False)]
+        cells, fractions = held.anchors(queries)
+        corner_cells = torch.as_tensor(
+            compute_corner_cells(
+                queries, origin=origin, voxel_sizes_m=cubes.voxel_sizes_m, cube_voxels=16
+            ),
+            device=device,
+        )
+
+        def point() -> Any:
+            return held.fill(cells, fractions, dtype=torch.float16)
+
+        def corner_fill() -> Any:
+            return corners_held.fill(corner_cells, dtype=torch.float16)
+
+        held.fill(cells[:64], fractions[:64], dtype=torch.float16)
+        corners_held.fill(corner_cells[:64], dtype=torch.float16)
+        point_s = _timed(point, device)[1]
+        corner_s = _timed(corner_fill, device)[1]
+        result[f"cubes_{n}"] = {
+            "point_centred_points_per_s": len(queries) / point_s,
+            "corner_centred_points_per_s": len(queries) / corner_s,
+        }
+        print(f"sweep cubes {n}: {result[f'cubes_{n}']}", flush=True)
+        if n == sizes[0]:
+            result["profile_point_cubes"] = top(point)
+
+    for n in sizes:
+        cube_rates(n)
+    config = CnnConfig()
+    torch.manual_seed(0)
+    network = build_network(config.cubes, config.network).eval().to(device)
+    for n in sizes[:2]:
+        form = InferenceNetwork(
+            network.to(memory_format=torch.channels_last_3d),
+            device=device,
+            precision="auto",
+            compile="always" if device == "cuda" else "never",
+            batch_size=n,
+            logit_mask=torch.zeros(8, device=device),
+        )
+        batch = (torch.rand(n, 5, 16, 16, 16, device=device) < 0.05).to(form.dtype)
+        with torch.inference_mode():
+            _, first_s, _ = _timed(lambda form=form, batch=batch: form.classify(batch), device)
+            best = min(
+                _timed(lambda form=form, batch=batch: form.classify(batch), device)[1]
+                for _ in range(5)
+            )
+            result[f"network_{n}"] = {"points_per_s": n / best, "first_call_s": first_s}
+            if n == sizes[0]:
+                result["profile_network"] = top(lambda form=form, batch=batch: form.classify(batch))
+        print(f"sweep network {n}: {result[f'network_{n}']}", flush=True)
+    # one training step's kernels (bfloat16 autocast on a GPU, as train runs it)
+    train_net = build_network(config.cubes, config.network).to(device)
+    optimizer = torch.optim.Adadelta(train_net.parameters())
+    loss_fn = torch.nn.CrossEntropyLoss()
+    cubes_b = (torch.rand(100, 5, 16, 16, 16, device=device) < 0.05).float()
+    target = torch.randint(0, 8, (100,), device=device)
+
+    def steps(k: int = 10) -> None:
+        for _ in range(k):
+            optimizer.zero_grad(set_to_none=True)
+            with torch.autocast(device, dtype=torch.bfloat16, enabled=device == "cuda"):
+                loss = loss_fn(train_net(cubes_b).float(), target)
+            loss.backward()
+            optimizer.step()
+
+    timed_steps = 20 if device == "cuda" else 1
+    for deterministic in (True, False):
+        torch.backends.cudnn.deterministic = deterministic
+        torch.backends.cudnn.benchmark = not deterministic
+        steps(3 if device == "cuda" else 1)
+        _, step_s, _ = _timed(lambda: steps(timed_steps), device)
+        result[f"train_step_deterministic_{deterministic}_s"] = step_s / timed_steps
+        if deterministic:
+            result["profile_train_step"] = top(lambda: steps(timed_steps), rows=16)
+    torch.backends.cudnn.deterministic, torch.backends.cudnn.benchmark = False, False
+    print(
+        "sweep train step (s): deterministic "
+        f"{result['train_step_deterministic_True_s']:.4f}, free "
+        f"{result['train_step_deterministic_False_s']:.4f}",
+        flush=True,
+    )
+    for name in ("profile_point_cubes", "profile_network", "profile_train_step"):
+        print(name, "\n".join(result[name]), sep="\n", flush=True)
+    return result
+
+
 def _cpu_model() -> str:
     try:
         lines = Path("/proc/cpuinfo").read_text().splitlines()
@@ -620,6 +750,8 @@ def main() -> None:
                 args.device, batch, 5 if cuda else 4, not (args.quick or args.no_compile), floors
             ),
         )
+    if "sweep" in only:
+        section("sweep", lambda: bench_sweep(args.device, floors))
     if "predict" in only:
         section("predict", lambda: bench_predict(args.device, 4.0 if args.quick else 6.0, floors))
     if "train" in only:

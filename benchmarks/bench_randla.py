@@ -28,6 +28,7 @@ shipped. Usage: ``python benchmarks/bench_randla.py --sections cv --seeds 0 --jo
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import os
 import subprocess
@@ -406,6 +407,138 @@ def memory(sizes: list[int], folder: Path, model_path: Path) -> dict[str, Any]:
     return results
 
 
+# -- on a device ------------------------------------------------------------------------------
+def _untrained(preset: str, changes: dict[str, dict[str, Any]]) -> Any:
+    """A model of ``preset`` (with ``changes`` per table) and untrained weights: speed does
+    not depend on the weights."""
+    import torch
+
+    from semantic3d import __version__
+    from semantic3d.baselines.randla.config import config_from_dict
+    from semantic3d.baselines.randla.model import RandlaModel
+    from semantic3d.baselines.randla.network import build_network
+
+    config = config_from_dict({"preset": preset, **changes})
+    torch.manual_seed(0)
+    values = (1, 2, 3, 4, 5, 6, 8)
+    network = build_network(config.inputs.n_inputs, len(values), config.network)
+    return RandlaModel(
+        network,
+        config=config,
+        label_values=values,
+        training_scans=(),
+        seed=0,
+        n_batches_trained=0,
+        training_time_s=0.0,
+        package_version=__version__,
+    )
+
+
+def device_speed(
+    folder: Path,
+    data: Path,
+    device: str,
+    sim_points: int,
+    batches: int,
+    parts: tuple[str, ...] = ("predict", "train"),
+) -> dict[str, Any]:
+    """``predict --device DEVICE`` end to end (a fresh process) on the Oakland scans and on
+    one simulated scan of ``sim_points``, for the ``cpu`` preset's network and the paper's
+    (colour off: the scans have none), untrained; training batches per second of both on
+    8 Oakland scans; FLOPs per point against the device's measured matrix rate."""
+    import dataclasses
+
+    import torch
+
+    from semantic3d.baselines.common.scans import find_labelled_scans
+    from semantic3d.baselines.randla.persistence import save_model
+    from semantic3d.baselines.randla.training import train_randla_model
+    from semantic3d.datasets.simulator import simulate
+
+    folder.mkdir(parents=True, exist_ok=True)
+    scan_path = folder / f"street{sim_points}.txt"
+    if "predict" in parts and not scan_path.is_file():
+        scan = simulate("street", out=folder / f"sim{sim_points}", n_points=sim_points, seed=3)
+        scan.scans[0].points_path.rename(scan_path)
+    results: dict[str, Any] = {"device": device, "load_start": _load()}
+    if device == "cuda":
+        results["gpu"] = torch.cuda.get_device_name()
+        a = torch.randn(8192, 8192, device=device, dtype=torch.bfloat16)
+        a @ a
+        torch.cuda.synchronize()
+        started = time.perf_counter()
+        for _ in range(5):
+            a @ a
+        torch.cuda.synchronize()
+        results["matmul_bf16_flops_per_s"] = 5 * 2 * 8192**3 / (time.perf_counter() - started)
+    presets = {
+        "cpu": {},
+        "paper": {"inputs": {"rgb": False}},
+        "paper_large_blocks": {"inputs": {"rgb": False}, "blocks": {"max_points": 262144}},
+    }
+    scans = find_labelled_scans(data)
+    for name, changes in presets.items():
+        model = _untrained(name.split("_")[0], changes)
+        path = folder / f"{name}.rla"
+        save_model(model, path)
+        row: dict[str, Any] = {"flops": flops_per_point(model)}
+        targets = ((data, None), (scan_path, sim_points)) if "predict" in parts else ()
+        for target, n_points in targets:
+            out = folder / f"{name}-{target.stem}"
+            if target.is_file():
+                out = out.with_suffix(".labels")
+            command = _predict_command(path, target, out, "randla", "--device", device)
+            try:
+                run = _timed_run(command, {})
+            except subprocess.CalledProcessError as error:
+                row[target.stem] = {"error": error.stderr.strip().splitlines()[-20:]}
+                print(f"speed {name} on {target.name} failed:\n{error.stderr[-3000:]}")
+                continue
+            if n_points is None:
+                n_points = sum(sum(part.size for part in s.iter_labels()) for s in scans)
+            run.update(n_points=n_points, points_per_s=n_points / run["wall_s"])
+            row[target.stem] = run
+            print(
+                f"device speed {name} on {target.name}: {run['points_per_s']:,.0f} points/s, "
+                f"{run['peak_rss_mib']:.0f} MiB, {run['wall_s']:.1f} s",
+                flush=True,
+            )
+        if name != "paper_large_blocks" and "train" in parts:
+            config = dataclasses.replace(
+                model.config,
+                training=dataclasses.replace(
+                    model.config.training, n_batches=batches, checkpoint_every=0
+                ),
+            )
+            marks: list[tuple[str, float]] = []
+            started = time.perf_counter()
+
+            def progress(
+                state: Any, marks: list[tuple[str, float]] = marks, started: float = started
+            ) -> None:
+                marks.append((state.stage, time.perf_counter() - started))
+
+            train_randla_model(
+                scans[:8], config=config, device=device, workdir=folder, progress=progress
+            )
+            wall = time.perf_counter() - started
+            drawing = sum(
+                later - at
+                for (stage, at), (_, later) in itertools.pairwise(marks)
+                if stage == "clouds"
+            )
+            row["train"] = {
+                "batches": batches,
+                "wall_s": wall,
+                "batches_per_s": batches / wall,
+                "drawing_clouds_s": drawing,
+            }
+            print(f"device train {name}: {row['train']}", flush=True)
+        results[name] = row
+    results["load_end"] = _load()
+    return results
+
+
 def _write(path: Path, document: dict[str, Any]) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     temp = path.with_name(path.name + ".partial")
@@ -425,6 +558,8 @@ def main() -> None:
     parser.add_argument("--model", type=Path, default=None, help="speed: this model, untrained")
     parser.add_argument("--data", type=Path, default=OAKLAND, help="the Oakland scans")
     parser.add_argument("--quick", action="store_true", help="a small version of every section")
+    parser.add_argument("--device", default="cpu", help="device: where the device section runs")
+    parser.add_argument("--device-parts", default="predict,train", help="device: what it runs")
     parser.add_argument(
         "--workdir", type=Path, default=Path(tempfile.gettempdir()) / "bench-randla"
     )
@@ -457,6 +592,15 @@ def main() -> None:
         results["sim"] = simulated_transfer(args.sim_points, args.batches, args.workdir / "sim")
     if "speed" in sections and args.data.is_dir():
         results["speed"] = speed(args.workdir / "speed", args.batches or 300, args.data, args.model)
+    if "device" in sections:
+        results[f"device_{args.device}"] = device_speed(
+            args.workdir / "device",
+            args.data,
+            args.device,
+            args.sim_points,
+            args.batches or 100,
+            tuple(args.device_parts.split(",")),
+        )
     if "memory" in sections:
         model_path = args.workdir / "speed" / "speed.rla"
         if not model_path.is_file():

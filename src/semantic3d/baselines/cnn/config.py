@@ -32,7 +32,7 @@ training schedule short enough for a CPU (and says so in every model it trains).
     [prediction]
     tile_size_m = 25.6
     batch_size = 256
-    device_batch_size = 4096
+    device_batch_size = 16384
     precision = "auto"
     compile = "auto"
 """
@@ -228,7 +228,7 @@ class PredictionConfig:
 
     tile_size_m: float = 25.6
     batch_size: int = 256
-    device_batch_size: int = 4096
+    device_batch_size: int = 16384
     chunk_size: int = 1 << 20
     deduplicate: bool = True
     precision: str = "auto"
