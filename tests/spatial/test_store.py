@@ -283,3 +283,43 @@ def test_kept_points_only_with_their_scan_positions(tmp_path: Path, buffer_point
             for tile in store.tiles:
                 core = store.read_core(tile)
                 assert core.cloud.equals(cloud[core.indices])
+
+
+def _mapped_kib(path: Path) -> int:
+    """Resident KiB of this process's mappings of ``path`` (Linux's smaps)."""
+    total, inside = 0, False
+    for line in Path("/proc/self/smaps").read_text().splitlines():
+        fields = line.split()
+        if fields and "-" in fields[0] and len(fields) >= 5:  # a mapping's header line
+            inside = fields[-1] == str(path)
+        elif inside and fields[0] == "Rss:":
+            total += int(fields[1])
+    return total
+
+
+@pytest.mark.skipif(not Path("/proc/self/smaps").is_file(), reason="needs Linux's smaps")
+def test_reading_every_tile_keeps_the_mapped_store_out_of_resident_memory(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Sealing writes the files without mapping them, and reading maps them anew every
+    REMAP_BYTES: the store's pages do not pile up in the process's memory as tiles are read
+    (they did: the whole store stayed resident, so memory grew with the scan)."""
+    import semantic3d.spatial.store as store_module
+
+    monkeypatch.setattr(store_module, "REMAP_BYTES", 1 << 20)
+    cloud = _cloud(400_000, extent=40.0)
+    grid = TileGrid(origin_xy=(-40.0, -40.0), cell_size_m=4.0)
+    store = build_tile_store(
+        _chunks(cloud, 50_000), tmp_path / "s", grid=grid, buffer_points=20_000
+    )
+    points_file = tmp_path / "s" / "points.npy"
+    assert _mapped_kib(points_file) == 0  # written with plain writes
+    assert points_file.stat().st_size > 15 << 20
+    seen, worst = 0, 0
+    for tile in store.tiles:
+        data = store.read(tile, halo_m=1.0)
+        seen += data.core.cloud.n_points
+        del data
+        worst = max(worst, _mapped_kib(points_file))
+    assert seen == cloud.n_points
+    assert worst < 4 << 10  # KiB: the remap period and a tile, not the 16 MB store

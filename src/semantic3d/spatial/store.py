@@ -68,6 +68,8 @@ OFFSETS_FILE = "offsets.npy"
 STARTS_FILE = "starts.npy"
 KEYS_FILE = "keys.npy"
 DEFAULT_SUBDIVISIONS = 32
+REMAP_BYTES = 1 << 28
+"""Records read through one mapping of a store's files before they are mapped anew."""
 DEFAULT_BUFFER_POINTS = 1 << 22
 _SMALL_TILE_POINTS = 4096
 """Tiles this small are filtered whole: cheaper than gathering their sub-cells."""
@@ -211,6 +213,7 @@ class TileStore:
         self._row = {tile: row for row, tile in enumerate(self.tiles)}
         self._points: NDArray[Any] | None = None
         self._order: NDArray[np.int32] | None = None
+        self._read_bytes = 0
         if self._starts.shape != (len(self.tiles) + 1,) or int(self._starts[-1]) != self.n_points:
             raise DataFormatError(
                 f"expected {self.n_points} points in {len(self.tiles)} tiles, found an index "
@@ -246,10 +249,20 @@ class TileStore:
         store._row = {tile: row for row, tile in enumerate(store.tiles)}
         store._points = points
         store._order = order
+        store._read_bytes = 0
         return store
 
-    def _arrays(self) -> tuple[NDArray[Any], NDArray[np.int32]]:
-        """The memory maps of the points and of the sub-cell order, opened once."""
+    def _arrays(self, touching: int = 0) -> tuple[NDArray[Any], NDArray[np.int32]]:
+        """The memory maps of the points and of the sub-cell order, about to be read for
+        ``touching`` records; opened anew after every :data:`REMAP_BYTES` read, so that the
+        pages read stop counting as this process's memory once nothing holds them (a
+        mapping keeps every page it was read through resident: the whole store, in the
+        end)."""
+        if self.directory is not None:
+            self._read_bytes += touching * self._dtype.itemsize
+            if self._read_bytes > REMAP_BYTES:
+                self._points = self._order = None
+                self._read_bytes = touching * self._dtype.itemsize
         if self._points is None or self._order is None:
             try:
                 # Plain arrays over the maps: slicing a np.memmap subclass costs ~10 µs.
@@ -299,7 +312,7 @@ class TileStore:
         """Memory-mapped records of ``tile`` and their sub-cell order (local indices)."""
         row = self._row[tile]
         begin, end = int(self._starts[row]), int(self._starts[row + 1])
-        points, order = self._arrays()
+        points, order = self._arrays(end - begin)
         return points[begin:end], order[begin:end]
 
     def read_core(self, tile: TileKey) -> TilePoints:
@@ -411,7 +424,7 @@ class TileStore:
         if sx0 > sx1 or sy0 > sy1:
             return np.empty(0, np.int64)
         begin, end = int(self._starts[row]), int(self._starts[row + 1])
-        points, order = self._arrays()
+        points, order = self._arrays(end - begin)
         whole = sx0 == 0 and sy0 == 0 and sx1 == n_sub - 1 and sy1 == n_sub - 1
         if whole or end - begin <= _SMALL_TILE_POINTS:
             sx0 = -1  # test every point: cheaper than walking the sub-cells
@@ -427,9 +440,19 @@ class TileStore:
 
     def _take(self, positions: list[NDArray[np.int64]]) -> TilePoints:
         """The records at ``positions`` (lists of store positions), in that order."""
-        points, _ = self._arrays()
         joined = positions[0] if len(positions) == 1 else np.concatenate(positions)
+        points, _ = self._arrays(joined.size)
         return TilePoints.from_records(np.take(points, joined))
+
+
+def _write_npy_header(stream: Any, dtype: np.dtype[Any], n: int) -> None:
+    """The ``.npy`` header of a one-dimensional array of ``n`` records of ``dtype``."""
+    header = {
+        "descr": np.lib.format.dtype_to_descr(dtype),
+        "fortran_order": False,
+        "shape": (n,),
+    }
+    np.lib.format.write_array_header_1_0(stream, header)
 
 
 class TileStoreWriter:
@@ -638,16 +661,7 @@ class TileStoreWriter:
                 order=order,
                 metadata=self.metadata,
             )
-        mapped_points = np.lib.format.open_memmap(
-            self._staging / POINTS_FILE, mode="w+", dtype=dtype, shape=(self.n_points,)
-        )
-        mapped_order = np.lib.format.open_memmap(
-            self._staging / ORDER_FILE, mode="w+", dtype=np.int32, shape=(self.n_points,)
-        )
-        try:
-            self._fill(tiles, mapped_points, mapped_order, offsets, starts)
-        finally:
-            del mapped_points, mapped_order  # unmap before the folder is renamed
+        self._write(tiles, dtype, offsets, starts)
         np.save(self._staging / KEYS_FILE, np.array(tiles, dtype=np.int64).reshape(-1, 2))
         np.save(self._staging / OFFSETS_FILE, offsets)
         np.save(self._staging / STARTS_FILE, starts)
@@ -703,6 +717,36 @@ class TileStoreWriter:
             starts[row + 1] = end
             self._part(tile).unlink(missing_ok=True)
             begin = end
+
+    def _write(
+        self,
+        tiles: list[TileKey],
+        dtype: np.dtype[Any],
+        offsets: NDArray[np.int64],
+        starts: NDArray[np.int64],
+    ) -> None:
+        """Write the point and order files tile by tile, with plain writes: memory holds
+        one tile (a file written through a memory map counts every page it wrote in the
+        process's resident memory, the whole store at the end)."""
+        with (
+            (self._staging / POINTS_FILE).open("wb") as points_file,
+            (self._staging / ORDER_FILE).open("wb") as order_file,
+        ):
+            _write_npy_header(points_file, dtype, self.n_points)
+            _write_npy_header(order_file, np.dtype(np.int32), self.n_points)
+            begin = 0
+            for row, tile in enumerate(tiles):
+                count = sum(part.shape[0] for part in self._buffers.get(tile, []))
+                if tile in self._on_disk:
+                    count += self._part(tile).stat().st_size // dtype.itemsize
+                records = np.empty(count, dtype)
+                order = np.empty(count, np.int32)
+                ends = np.zeros(2, np.int64)  # _fill's start and end of this one tile
+                self._fill([tile], records, order, offsets[row : row + 1], ends)
+                points_file.write(_as_bytes(records).data)
+                order_file.write(order.data)
+                begin += count
+                starts[row + 1] = begin
 
     def abort(self) -> None:
         """Remove everything written; ``directory`` is left as it was."""
