@@ -289,7 +289,9 @@ _CHILD = """
 import json, resource, sys
 from semantic3d.cli.app import app
 try:
-    app(sys.argv[1:], standalone_mode=False)
+    code = app(sys.argv[1:], standalone_mode=False)
+    if code:  # a refusal returns its exit code here instead of exiting
+        sys.exit(code)
 finally:
     usage = resource.getrusage(resource.RUSAGE_SELF)
     with open("/proc/self/status") as status:
@@ -392,7 +394,7 @@ def memory(sizes: list[int], folder: Path, model_path: Path) -> dict[str, Any]:
             scan = simulate("square", out=folder / f"sim{n_points}", n_points=n_points, seed=5)
             scan.scans[0].points_path.rename(scan_path)
         env = {"OMP_NUM_THREADS": "2", "NUMBA_NUM_THREADS": "2"}
-        out = folder / f"square{n_points}.labels"
+        out = folder / "predicted" / f"square{n_points}.labels"  # never beside the scan
         run = _timed_run(_predict_command(model_path, scan_path, out, "randla"), env)
         written = sum(1 for _ in out.open("rb"))
         run.update(n_points=written, points_per_s=written / run["wall_s"], load=_load())
