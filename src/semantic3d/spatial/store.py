@@ -303,6 +303,16 @@ class TileStore:
         row = self._row.get(tile)
         return 0 if row is None else int(self._starts[row + 1] - self._starts[row])
 
+    def sub_cell_counts(self, tile: TileKey) -> NDArray[np.int64]:
+        """``(subdivisions, subdivisions)`` points of each sub-cell of ``tile``, indexed
+        ``[x, y]`` (zeros for an empty tile): where a tile is dense, without reading it."""
+        n_sub = self.subdivisions
+        row = self._row.get(tile)
+        if row is None:
+            return np.zeros((n_sub, n_sub), np.int64)
+        counts: NDArray[np.int64] = np.diff(self._offsets[row]).reshape(n_sub, n_sub)
+        return counts
+
     @property
     def tile_size_m(self) -> float:
         """Edge of a tile."""
@@ -349,20 +359,40 @@ class TileStore:
 
     def read_box(self, box: Bounds) -> TilePoints:
         """Every point inside the rectangle ``box`` (edges included), tile by tile."""
+        parts = [
+            part for other in self.tiles_near(box) if (part := self._box_indices(other, box)).size
+        ]
+        if not parts:
+            return TilePoints.from_records(np.empty(0, self._dtype))
+        return self._take(parts)
+
+    def read_box_parts(
+        self, box: Bounds, *, tiles: Iterable[TileKey] | None = None
+    ) -> Iterator[tuple[TileKey, TilePoints]]:
+        """The points inside the rectangle ``box`` (edges included) of each tile holding
+        some (of ``tiles`` only, when given), tile by tile, in tile order; inside a tile in
+        the order they were streamed."""
+        wanted = None if tiles is None else set(tiles)
+        for other in self.tiles_near(box):
+            if wanted is not None and other not in wanted:
+                continue
+            positions = self._box_indices(other, box)
+            if positions.size:
+                yield other, self._take([positions])
+
+    def tiles_near(self, box: Bounds) -> list[TileKey]:
+        """The non-empty tiles that can hold points of the rectangle ``box``, in tile order
+        (its tiles and a ring around them: a point on a tile's edge may belong to either)."""
         x_min, y_min, x_max, y_max = box
         size = self.grid.tile_size_m
         x0, y0 = self.grid.origin_xy
         low = (math.floor((x_min - x0) / size) - 1, math.floor((y_min - y0) / size) - 1)
         high = (math.floor((x_max - x0) / size) + 1, math.floor((y_max - y0) / size) + 1)
-        parts = [
-            part
+        return [
+            other
             for other in self.tiles
             if low[0] <= other[0] <= high[0] and low[1] <= other[1] <= high[1]
-            if (part := self._box_indices(other, box)).size
         ]
-        if not parts:
-            return TilePoints.from_records(np.empty(0, self._dtype))
-        return self._take(parts)
 
     def jobs(self, *, halo_m: float = 0.0) -> tuple[TileJob, ...]:
         """One picklable job per non-empty tile, in tile order."""

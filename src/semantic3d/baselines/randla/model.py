@@ -39,12 +39,11 @@ from semantic3d.baselines.randla.blocks import (
     Piece,
     VoxelCloud,
     local_coordinates,
-    point_inputs,
     split_tile,
-    voxelise,
 )
 from semantic3d.baselines.randla.config import RandlaConfig
 from semantic3d.baselines.randla.levels import build_levels, stack_levels
+from semantic3d.baselines.randla.tile_voxels import core_point_labels, read_tile_voxels
 from semantic3d.core.errors import require
 from semantic3d.core.pointcloud import PointCloud
 from semantic3d.spatial.grid import TileGrid, TileKey
@@ -176,23 +175,21 @@ class RandlaModel:
         """Scan indices and label values of every point of ``tile``, its halo read from
         ``store`` (a store whose grid is :meth:`tile_grid`'s)."""
         blocks = self.config.blocks
-        data = store.read(tile, halo_m=blocks.halo_m)
-        core = data.core
-        cloud = PointCloud.concatenate([core.cloud, data.halo.cloud])
         origin = grid_anchor(store.grid)
-        voxels = voxelise(
-            np.asarray(cloud.xyz),
+        held = read_tile_voxels(
+            store,
+            tile,
+            halo_m=blocks.halo_m,
             origin=origin,
             voxel_size_m=blocks.voxel_size_m,
-            inputs=point_inputs(cloud, self.config.inputs),
+            inputs=self.config.inputs,
         )
+        voxels = held.voxels
         cells_per_tile = store.grid.cells_per_tile
         x0, y0 = tile[0] * cells_per_tile, tile[1] * cells_per_tile
-        in_core = np.zeros(voxels.n_voxels, np.bool_)
-        in_core[voxels.inverse[: core.n_points]] = True
         pieces = split_tile(
             voxels,
-            core=in_core,
+            core=held.core,
             cell_range=(x0, y0, x0 + cells_per_tile, y0 + cells_per_tile),
             origin=origin,
             voxel_size_m=blocks.voxel_size_m,
@@ -202,8 +199,9 @@ class RandlaModel:
         voxel_labels = np.zeros(voxels.n_voxels, np.uint8)
         for piece in pieces:
             voxel_labels[piece.labelled] = self._label_piece(voxels, piece, tile)
-        labels = voxel_labels[voxels.inverse[: core.n_points]]
-        return np.asarray(core.indices, np.int64).copy(), labels
+        return core_point_labels(
+            store, tile, held, voxel_labels, origin=origin, voxel_size_m=blocks.voxel_size_m
+        )
 
     def _label_piece(self, voxels: VoxelCloud, piece: Piece, tile: TileKey) -> NDArray[np.uint8]:
         """Label values of ``piece.labelled`` from one network pass over ``piece.block``."""
