@@ -290,7 +290,7 @@ import json, resource, sys
 from semantic3d.cli.app import app
 try:
     code = app(sys.argv[1:], standalone_mode=False)
-    if code:  # a refusal returns its exit code here instead of exiting
+    if isinstance(code, int) and code:  # a refusal returns its exit code here
         sys.exit(code)
 finally:
     usage = resource.getrusage(resource.RUSAGE_SELF)
@@ -314,9 +314,9 @@ def _predict_command(model: Path, scan: Path, out: Path, baseline: str, *extra: 
 def _timed_run(command: list[str], env: dict[str, str]) -> dict[str, float]:
     """Wall seconds, and CPU seconds and peak RSS (MiB) of a fresh process running a command."""
     started = time.perf_counter()
-    done = subprocess.run(
-        command, check=True, env={**os.environ, **env}, capture_output=True, text=True
-    )
+    done = subprocess.run(command, env={**os.environ, **env}, capture_output=True, text=True)
+    if done.returncode:
+        raise RuntimeError(f"{' '.join(command[3:])} failed:\n{done.stderr[-3000:]}")
     wall = time.perf_counter() - started
     measured: dict[str, float] = json.loads(done.stdout.strip().splitlines()[-1])
     return {"wall_s": wall, **measured}
@@ -492,9 +492,9 @@ def device_speed(
             command = _predict_command(path, target, out, "randla", "--device", device)
             try:
                 run = _timed_run(command, {})
-            except subprocess.CalledProcessError as error:
-                row[target.stem] = {"error": error.stderr.strip().splitlines()[-20:]}
-                print(f"speed {name} on {target.name} failed:\n{error.stderr[-3000:]}")
+            except RuntimeError as error:
+                row[target.stem] = {"error": str(error).splitlines()[-20:]}
+                print(f"speed {name} on {target.name} {error}")
                 continue
             if n_points is None:
                 n_points = sum(sum(part.size for part in s.iter_labels()) for s in scans)
