@@ -9,6 +9,7 @@ the written ``.labels``. Screenshots are kept in the test's temporary folder (or
 from __future__ import annotations
 
 import os
+import re
 import socket
 import threading
 import time
@@ -18,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import semantic3d.labelling
 from semantic3d.io import read_labels
 from semantic3d.labelling.opening import open_label_session
 from semantic3d.labelling.session import LabelSession
@@ -108,6 +110,42 @@ def _idle(page) -> None:
         timeout=30_000,
     )
     page.wait_for_timeout(150)  # one more animation frame after the last node
+
+
+APP_JS = Path(semantic3d.labelling.__file__).parent / "static" / "app.js"
+_KEY_NAMES = {"enter": "Enter", "backspace": "Backspace", "escape": "Escape"}
+
+
+def _keys_handled() -> tuple[set[str], set[str]]:
+    """The keys the page's keydown handler acts on, named as a user reads them, and of
+    those the ones it ignores in the read-only viewer (every Ctrl key, ``EDIT_KEYS``)."""
+    source = APP_JS.read_text()
+    handler = source[source.index("  key(e) {") : source.index("  toggleHelp()")]
+    skipped = re.search(r"const EDIT_KEYS = new Set\(\[(.*?)\]\)", source)
+    assert skipped is not None
+    editing = {_KEY_NAMES.get(k, k.upper()) for k in re.findall(r"'(.+?)'", skipped.group(1))}
+    handled: set[str] = set()
+    for line in handler.splitlines():
+        for key in re.findall(r"key === '(.+?)'", line):
+            name = _KEY_NAMES.get(key, key.upper())
+            if "ctrl && key" in line:
+                names = {f"Ctrl+{name}"} | (
+                    {f"Ctrl+Shift+{name}"} if "e.shiftKey" in line else set()
+                )
+                handled |= names
+                editing |= names
+            else:
+                handled.add(name)
+    assert {"Ctrl+Z", "Backspace", "Enter", "D", "V", "H", "?"} <= handled, handled  # parsed
+    return handled, editing
+
+
+def _help_keys(page) -> set[str]:
+    """The keys the help panel lists (its first column, comma-separated)."""
+    cells = page.eval_on_selector_all(
+        "#help-keys tr td:first-child", "cells => cells.map((c) => c.textContent)"
+    )
+    return {key.strip() for cell in cells for key in cell.split(",")}
 
 
 def _client(page, xyz) -> tuple[float, float]:
@@ -218,6 +256,25 @@ def test_polygon_split_plane_fit_assign_undo_save(browser, served, simulated_sca
     assert (artifacts / "labelling-4-assigned.png").stat().st_size > 5_000
 
 
+VIEWER_CONTROLS = {
+    "help-toggle", "colour-mode", "point-size", "point-budget",
+    "view-free", "view-top", "view-front", "view-side", "view-free2d", "frame-dense",
+    "measure", "clear-measure", "stats-working", "stats-view",
+    "show-layer",  # one per class
+}  # fmt: skip
+"""The viewer's visible controls (the colour range fields appear with height and intensity)."""
+
+
+def _visible_controls(page) -> set[str]:
+    """Ids (or, without one, class names) of the buttons, fields and lists on show."""
+    return set(
+        page.eval_on_selector_all(
+            "button, input, select, textarea",
+            "all => all.filter((e) => e.getClientRects().length).map((e) => e.id || e.className)",
+        )
+    )
+
+
 def test_the_viewer_shows_prediction_errors_read_only(browser, simulated_scan, tmp_path):
     from PIL import Image
 
@@ -243,15 +300,35 @@ def test_the_viewer_shows_prediction_errors_read_only(browser, simulated_scan, t
         page.goto(server.url)
         _idle(page)
         assert page.inner_text("#mode-line") == "read-only viewer"
-        assert not page.is_visible("#draw-polygon") and not page.is_visible("#assign")
-        for editing in ("#draw-lasso", "#draw-brush", "#fit-preview", "#pick-points", "#save"):
-            assert not page.is_visible(editing)
-        assert page.is_visible("#measure") and page.is_visible("#stats-view")
+        # Only viewing controls are shown: no selection, fit, layer edit, history or save.
+        assert _visible_controls(page) == VIEWER_CONTROLS
+        assert page.locator("#layers th:visible").all_inner_texts() == [
+            "",
+            "class",
+            "points",
+            "show",
+        ]
+        page.keyboard.press("h")
+        handled, editing = _keys_handled()
+        assert _help_keys(page) == handled - editing  # the keys the viewer acts on, no others
+        page.keyboard.press("Escape")
+        for key in ("d", "p", "Backspace", "Control+z"):  # editing keys do nothing here
+            page.keyboard.press(key)
+        assert page.evaluate(
+            "window.labelApp.tool.kind === null && window.labelApp.mode === 'orbit'"
+        )
         page.click("#stats-working")
         page.wait_for_function("document.getElementById('stats').textContent.includes('confusion')")
         assert "overall accuracy" in page.inner_text("#stats")
+        assert f"scan: {session.n_points:,} points" in page.inner_text("#stats")
         page.click("#view-top")
+        page.select_option("#colour-mode", "prediction")
+        assert "buildings" in page.inner_text("#legend") and "no prediction" in page.inner_text(
+            "#legend"
+        )
         page.select_option("#colour-mode", "errors")
+        legend = page.inner_text("#legend")
+        assert "right" in legend and "wrong" in legend and "unlabelled truth" in legend
         page.evaluate(
             "() => { const s = document.getElementById('point-size');"
             " s.value = '4'; s.dispatchEvent(new Event('input')); }"
@@ -391,9 +468,8 @@ def test_interactions_of_a_surveyor(browser, served, simulated_scan, tmp_path):
         # Help lists every key the page handles.
         page.keyboard.press("h")
         assert page.is_visible("#help")
-        keys = page.inner_text("#help-keys")
-        for key in ("Ctrl+Z", "Backspace", "double-click", "Escape", "V", "M", "L", "B"):
-            assert key in keys
+        handled, _ = _keys_handled()
+        assert _help_keys(page) == handled | {"double-click"}
         page.keyboard.press("Escape")
         assert not page.is_visible("#help")
 
@@ -529,6 +605,165 @@ def test_interactions_of_a_surveyor(browser, served, simulated_scan, tmp_path):
     finally:
         page.close()
     assert not errors, errors
+
+
+_CURSOR_RAY_POINT = """([x, y]) => {
+  const v = window.labelApp.viewer, camera = v.camera, Vector3 = camera.position.constructor;
+  const [u, w] = v.ndcOf(x, y);
+  camera.updateMatrixWorld();
+  const near = new Vector3(u, w, -1).unproject(camera).toArray();
+  const far = new Vector3(u, w, 1).unproject(camera).toArray();
+  const direction = far.map((f, k) => f - near[k]);
+  const length = Math.hypot(...direction);
+  const depth = camera.position.distanceTo(v.controls.target);
+  return near.map((n, k) => n + (direction[k] / length) * depth);
+}"""
+
+
+def test_start_view_zoom_to_cursor_and_2d_along_the_view(browser, served, simulated_scan):
+    """The start view frames the dense part; the wheel zooms to the cursor; 2D here looks
+    along the current direction at the same scale; 2D views show a true scale bar and axes."""
+    server, session, _ = served
+    page = browser.new_page(viewport={"width": 1200, "height": 800}, bypass_csp=True)
+    errors: list[str] = []
+    page.on("pageerror", lambda error: errors.append(str(error)))
+    try:
+        page.goto(server.url)
+        _idle(page)
+        # Far returns make the bounds ten times the dense part: the start view ignores them.
+        local = np.asarray(simulated_scan.cache.xyz) - session.origin
+        low, high = np.percentile(local, [5, 95], axis=0)
+        start = page.evaluate(
+            """() => { const v = window.labelApp.viewer;
+              return { low: v.frame.min.toArray(), high: v.frame.max.toArray(),
+                       target: v.controls.target.toArray(), camera: v.camera.position.toArray(),
+                       bounds: v.bounds.max.clone().sub(v.bounds.min).toArray() }; }"""
+        )
+        size = max(np.subtract(start["high"], start["low"]))
+        assert max(start["bounds"]) > 5 * max(high - low)  # the simulated scan has far returns
+        np.testing.assert_allclose(start["low"], low, atol=0.1 * max(high - low))
+        np.testing.assert_allclose(start["high"], high, atol=0.1 * max(high - low))
+        np.testing.assert_allclose(start["target"], (low + high) / 2, atol=0.1 * max(high - low))
+        distance = np.linalg.norm(np.subtract(start["camera"], start["target"]))
+        assert distance == pytest.approx(1.1 * size, rel=1e-3)
+
+        # Zoom to the cursor, in orbit and in a 2D view: the point under it stays under it.
+        box = page.locator("#stage").bounding_box()
+        assert box is not None
+        for view in ("o", "t"):
+            page.keyboard.press(view)
+            _idle(page)
+            cursor = (box["x"] + 0.25 * box["width"], box["y"] + 0.3 * box["height"])
+            under = page.evaluate(_CURSOR_RAY_POINT, list(cursor))
+            before = page.evaluate("window.labelApp.viewer.metresPerPixel()")
+            page.mouse.move(*cursor)
+            page.mouse.wheel(0, -400)
+            _idle(page)
+            assert page.evaluate("window.labelApp.viewer.metresPerPixel()") < 0.9 * before, view
+            np.testing.assert_allclose(_client(page, under), cursor, atol=2.0, err_msg=view)
+
+        # 2D here from an oblique orbit view: the same direction and scale, rotation off.
+        page.keyboard.press("o")
+        _idle(page)
+        oblique = page.evaluate(
+            """() => { const v = window.labelApp.viewer, t = v.controls.target;
+              v.camera.position.set(t.x + 30, t.y - 12, t.z + 9); v.controls.update();
+              return { direction: t.clone().sub(v.camera.position).normalize().toArray(),
+                       metresPerPixel: v.metresPerPixel() }; }"""
+        )
+        page.keyboard.press("v")
+        _idle(page)
+        flat = page.evaluate(
+            """() => { const v = window.labelApp.viewer, c = v.camera;
+              return { view: v.view, orthographic: c.isOrthographicCamera,
+                       rotate: v.controls.enableRotate, metresPerPixel: v.metresPerPixel(),
+                       direction: c.getWorldDirection(c.position.clone()).toArray() }; }"""
+        )
+        assert flat["view"] == "free2d" and flat["orthographic"] and not flat["rotate"]
+        np.testing.assert_allclose(flat["direction"], oblique["direction"], atol=1e-6)
+        assert flat["metresPerPixel"] == pytest.approx(oblique["metresPerPixel"], rel=1e-3)
+        right, up = page.evaluate("window.labelApp.viewer.screenAxes()").values()
+        assert abs(right[2]) < 1e-6 and up[2] > 0  # a street's facade stands upright
+        page.keyboard.press("t")
+        _idle(page)
+        top = page.evaluate("window.labelApp.viewer.metresPerPixel()")
+        page.keyboard.press("v")  # from a 2D view: along it, at its scale
+        _idle(page)
+        flat = page.evaluate(
+            "(() => { const c = window.labelApp.viewer.camera;"
+            " return c.getWorldDirection(c.position.clone()).toArray(); })()"
+        )
+        np.testing.assert_allclose(flat, [0.0, 0.0, -1.0], atol=1e-6)
+        assert page.evaluate("window.labelApp.viewer.metresPerPixel()") == pytest.approx(top)
+
+        # The scale bar says what its pixels measure; the axes name the screen's directions.
+        for view in ("v", "t"):
+            page.keyboard.press(view)
+            _idle(page)
+            width_px = page.evaluate(
+                "parseFloat(document.getElementById('scale-line').style.width)"
+            )
+            number, unit = page.inner_text("#scale-text").split()
+            length_m = float(number) * (1e-3 if unit == "mm" else 1.0)
+            metres_per_pixel = page.evaluate("window.labelApp.viewer.metresPerPixel()")
+            assert width_px * metres_per_pixel == pytest.approx(length_m, rel=1e-3)
+            assert 40 <= width_px <= 120
+        assert page.inner_text("#axes").split("\n") == ["→ +x", "↑ +y"]
+        page.keyboard.press("o")
+        assert not page.is_visible("#scale-bar") and not page.is_visible("#axes")
+    finally:
+        page.close()
+    assert not errors, errors
+
+
+def test_a_long_operation_shows_its_progress_and_the_page_cancels_it(
+    browser, served, simulated_scan, monkeypatch
+):
+    """A split held on the server shows a progress bar; its cancel button leaves nothing."""
+    server, session, _ = served
+    asked = threading.Event()
+    cancel, update = session.progress.cancel, session.progress.update
+
+    def cancel_and_tell() -> bool:
+        cancelled = cancel()
+        asked.set()
+        return cancelled
+
+    def held(done: int) -> None:  # the split lingers after its first node until cancelled
+        update(done)
+        if done > 0:
+            asked.wait(20)
+            update(done)
+
+    monkeypatch.setattr(session.progress, "cancel", cancel_and_tell)
+    monkeypatch.setattr(session.progress, "update", held)
+    page = browser.new_page(viewport={"width": 1200, "height": 800}, bypass_csp=True)
+    try:
+        page.goto(server.url)
+        _idle(page)
+        entries = len(session.journal.operations())
+        station = np.array(simulated_scan.station_m) - session.origin
+        page.keyboard.press("t")
+        _idle(page)
+        page.keyboard.press("d")
+        h = HALF_SQUARE_M
+        for dx, dy in ((-h, -h), (h, -h), (h, h), (-h, h)):
+            page.mouse.click(*_client(page, _offset(station, dx, dy, 0.0)))
+        page.keyboard.press("Enter")
+        page.click("#keep-inside")
+        page.wait_for_selector("#progress", state="visible", timeout=10_000)
+        page.wait_for_function(
+            "document.getElementById('progress-text').textContent.startsWith('split: ')"
+        )
+        assert not asked.is_set()
+        page.click("#cancel-operation")
+        page.wait_for_function("document.getElementById('error').textContent.includes('cancelled')")
+        assert page.is_hidden("#progress")
+        assert page.inner_text("#working-count") == f"{session.n_points:,}"
+    finally:
+        page.close()
+    assert asked.is_set() and session.working.all()
+    assert len(session.journal.operations()) == entries
 
 
 def test_a_long_tour_stays_under_the_memory_budget(browser, served):

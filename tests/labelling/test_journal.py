@@ -196,3 +196,24 @@ def test_a_journal_of_another_scan_is_refused(tmp_path: Path) -> None:
 
 def test_journal_lives_beside_the_labels() -> None:
     assert journal_path_for(Path("a/b.labels")) == Path("a/b.labels.journal")
+
+
+def test_mask_kernels_equal_numpy_at_any_length() -> None:
+    """Counting the bits of a mask and flipping the working set by it (8 points a byte,
+    a partial last byte) equal numpy's unpacked masks."""
+    from semantic3d.labelling import _op_kernels
+
+    rng = np.random.default_rng(3)
+    for n in (0, 1, 7, 8, 9, 63, 64, 65, 1001):
+        chosen = rng.random(n) < 0.6
+        chosen[: n // 3] = True  # whole bytes set, and mixed ones
+        flip = np.packbits(chosen, bitorder="little")
+        assert _op_kernels.count_bits(flip) == chosen.sum()
+        working = rng.random(n) < 0.5
+        labels = rng.integers(0, 9, n).astype(np.uint8)
+        expected_working, expected_labels = working ^ chosen, labels.copy()
+        _op_kernels.apply_delta(
+            labels, working, np.zeros_like(flip), np.zeros(0, np.uint8), -1, flip, True
+        )
+        np.testing.assert_array_equal(working, expected_working, err_msg=str(n))
+        np.testing.assert_array_equal(labels, expected_labels)

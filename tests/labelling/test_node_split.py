@@ -73,3 +73,32 @@ def test_a_split_over_nodes_equals_the_pass_over_every_point(session, simulated_
             seen["whole"] += counts.nodes_whole
             seen["inside" if keep_inside else "outside"] += counts.nodes_skipped
     assert all(seen.values()), seen  # every path was taken, nodes inside and outside skipped
+
+
+def test_a_split_over_nodes_on_threads_equals_it_on_one(session, simulated_scan, monkeypatch):
+    """Tasks of a few nodes on 1 and 3 threads (each with its own mask, OR-ed in the end)
+    mark the same bits, equal to the pass over every point, with the same counts."""
+    monkeypatch.setattr("semantic3d.labelling.node_split.TASK_POINTS", 2000)
+    xyz = np.asarray(session.scan.xyz)
+    session.labels[:] = simulated_scan.truth
+    session.working[:] = np.random.default_rng(5).random(session.n_points) < 0.7
+    editable = np.ones(9, bool)
+    editable[2] = False
+    for name, matrix, polygon in _views(xyz - session.origin):
+        for keep_inside in (True, False):
+            expected = empty_bits(session.n_points)
+            _op_kernels.split_flips(
+                xyz, 0, session.origin, session.labels, session.working, editable,
+                matrix, polygon, keep_inside, expected,
+            )  # fmt: skip
+            outcomes = []
+            for threads in (1, 3):
+                flip = empty_bits(session.n_points)
+                counts = split_flips_by_nodes(
+                    session, matrix, polygon, keep_inside=keep_inside, editable=editable,
+                    flip=flip, threads=threads,
+                )  # fmt: skip
+                np.testing.assert_array_equal(flip, expected, err_msg=f"{name}, {threads=}")
+                outcomes.append(counts)
+            assert outcomes[0] == outcomes[1], name
+            assert outcomes[0].points_whole + outcomes[0].points_across > 4 * 2000, name

@@ -133,6 +133,24 @@ def test_caches_are_keyed_by_path_and_rebuilt_when_the_scan_changes(
     assert _listing(other) == {"scan.txt"}
 
 
+def test_a_level_of_detail_of_an_older_format_is_replaced(scan_folder, tmp_path) -> None:
+    """An index of an older format version in the cache folder is rebuilt under the new
+    version's name and the old one removed (1.7 GB at 10**8 points)."""
+    from semantic3d.labelling.cachedir import entry_name
+    from semantic3d.labelling.lod import LOD_VERSION
+
+    caches = tmp_path / "caches"
+    first = open_label_session(scan_folder / "scan.txt", read_only=True, cache_dir=caches)
+    current = first.lod.directory
+    first.close()
+    older = caches / f"{entry_name(first.scan.path)}.lod-v1"
+    assert current.name.endswith(f".lod-v{LOD_VERSION}") and LOD_VERSION > 1
+    shutil.copytree(current, older)
+    again = open_label_session(scan_folder / "scan.txt", read_only=True, cache_dir=caches)
+    assert again.lod.directory == current and not older.exists()
+    again.close()
+
+
 def test_the_cache_folder_is_the_option_then_the_variable_then_the_users(
     scan_folder, tmp_path, monkeypatch
 ) -> None:

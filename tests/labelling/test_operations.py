@@ -229,6 +229,7 @@ def _perspective(height_m: float = 80.0, focal: float = 1.5) -> np.ndarray:
 def test_passes_on_threads_equal_the_pass_in_order(session, simulated_scan, monkeypatch) -> None:
     """Splits, masks, fits and counts over blocks on threads set the same bits as in order."""
     monkeypatch.setattr("semantic3d.labelling.blocks.BLOCK_POINTS", 4096)  # 10 blocks
+    monkeypatch.setattr("semantic3d.labelling.node_split.TASK_POINTS", 4096)  # polygon splits
     truth = simulated_scan.truth
     session.labels[:] = truth
     session.set_layer(3, locked=True)

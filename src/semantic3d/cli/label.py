@@ -55,10 +55,11 @@ def _open(scan: Path, **options: Any) -> Any:
 
     stages = {
         "cache": "caching the scan",
-        "bounds": "level of detail 1/4",
-        "histogram": "level of detail 2/4",
-        "counts": "level of detail 3/4",
-        "write": "level of detail 4/4",
+        "bounds": "level of detail: bounds",
+        "histogram": "level of detail: cells",
+        "refine": "level of detail: dense cells",
+        "counts": "level of detail: nodes",
+        "write": "level of detail: writing",
     }
     with progress_bar() as bar:
         tasks: dict[str, Any] = {}

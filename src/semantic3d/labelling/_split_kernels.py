@@ -192,3 +192,11 @@ def split_flips_rows(  # type: ignore[no-untyped-def]
         inside = in_split_polygon(x, y, z, matrix, vertices, low_u, high_u, low_v, high_v)
         if inside != keep_inside:
             flip[i >> 3] |= np.uint8(1 << (i & 7))
+
+
+@nb.njit(cache=True, nogil=True)
+def or_into(flip, mask):  # type: ignore[no-untyped-def]
+    """``flip |= mask`` (bit masks of the same length)."""
+    for k in range(flip.shape[0]):
+        if mask[k]:
+            flip[k] |= mask[k]

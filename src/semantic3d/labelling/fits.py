@@ -13,7 +13,7 @@ uniform sample to draw, changing nothing; a previewed model can be committed as 
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
+from collections.abc import Generator
 from dataclasses import dataclass
 from typing import Any
 
@@ -92,10 +92,16 @@ def _fit_inputs(
     return model_kind, seed_xyz, tolerance, radius
 
 
-def _region_nodes(
+READ_POINTS = 1 << 20
+"""Points of consecutive nodes a fit in a region reads at once (a larger node in parts)."""
+
+
+def _region_pieces(
     session: LabelSession, region: Region
-) -> Iterator[tuple[NDArray[np.float32], NDArray[Any]]]:
-    """``(re-centred positions, scan indices)`` of the octree nodes meeting ``region``'s box.
+) -> Generator[tuple[NDArray[np.float32], NDArray[Any], list[tuple[int, bool]]], None, None]:
+    """The points of the octree nodes meeting ``region``'s box, in node order, read in
+    pieces of consecutive nodes: ``(re-centred positions, scan indices, ends)``, ``ends``
+    the piece's parts ``(end, whether a node ends there)``.
 
     Coarse nodes first (ids are breadth first): a caller that stops early (the fit's
     candidates) has an even sample of the region, since coarse nodes are uniform
@@ -107,21 +113,33 @@ def _region_nodes(
     else:
         assert region.low is not None and region.high is not None
         low, high = region.low, region.high
-    nodes = [
-        node
-        for node in session.lod.nodes
-        if node.count
-        and (np.asarray(node.bounds[:3]) <= high).all()
-        and (np.asarray(node.bounds[3:]) >= low).all()
-    ]
-    total = sum(node.count for node in nodes)
+    lod = session.lod
+    meets = (
+        (lod.node_counts > 0)
+        & (lod.node_bounds[:, :3] <= high).all(axis=1)
+        & (lod.node_bounds[:, 3:] >= low).all(axis=1)
+    )
+    ids = np.flatnonzero(meets)
+    starts, counts = lod.node_starts[ids].tolist(), lod.node_counts[ids].tolist()
+    total = int(sum(counts))
     session.progress.set_total(total)
+    pieces: list[tuple[int, list[tuple[int, bool]]]] = []  # (start, ends)
+    for start, count in zip(starts, counts, strict=True):
+        if pieces:
+            first, ends = pieces[-1]
+            end = first + ends[-1][0]
+            if end == start and ends[-1][0] + count <= READ_POINTS:
+                ends.append((ends[-1][0] + count, True))
+                continue
+        for part in range(0, count, READ_POINTS):
+            size = min(READ_POINTS, count - part)
+            pieces.append((start + part, [(size, part + size == count)]))
     done = 0
-    for node in nodes:
-        for positions, indices in session.lod.iter_positions(node.id):
-            session.progress.update(done)
-            yield positions, indices
-            done += len(indices)
+    for start, ends in pieces:
+        session.progress.update(done)
+        count = ends[-1][0]
+        yield lod.read_positions(start, count), lod.read_indices(start, count), ends
+        done += count
     session.progress.update(total)
 
 
@@ -154,13 +172,21 @@ def _fit(
     candidates = np.empty((_CANDIDATES_MAX, 3))
     filled = seen = 0
     editable = session.editable_layers()
-    for positions, index in _region_nodes(session, search):
-        filled, seen = kernels.region_candidates_at(
-            positions, index, session.labels, session.working, editable,
-            code, parameters, candidates, filled, seen,
-        )  # fmt: skip
-        if filled >= _CANDIDATES_MAX:  # enough, from the coarsest nodes
-            break
+    pieces = _region_pieces(session, search)
+    for positions, index, ends in pieces:
+        begin = 0
+        for end, node_ends in ends:
+            filled, seen = kernels.region_candidates_at(
+                positions[begin:end], index[begin:end], session.labels, session.working,
+                editable, code, parameters, candidates, filled, seen,
+            )  # fmt: skip
+            begin = end
+            if node_ends and filled >= _CANDIDATES_MAX:  # enough, from the coarsest nodes
+                break
+        else:
+            continue
+        pieces.close()
+        break
     try:
         fitted_result = geometry.fit_model(
             model_kind, candidates[:filled], tolerance_m=tolerance, seeds=seed_xyz
@@ -197,7 +223,7 @@ def fit_preview(
                 )  # fmt: skip
                 squares += block_squares
         else:
-            for positions, index in _region_nodes(session, region):
+            for positions, index, _ in _region_pieces(session, region):
                 filled, seen, block_squares = kernels.inlier_sample_at(
                     positions, index, session.labels, session.working, editable, code, parameters,
                     tolerance, region_code, region_parameters, sample, filled, seen,
@@ -247,7 +273,7 @@ def fit(
             )  # fmt: skip
         else:  # every active point leaves, but the inliers of the nodes meeting the region
             kernels.mark_active(session.labels, session.working, editable, flip)
-            for positions, index in _region_nodes(session, region):
+            for positions, index, _ in _region_pieces(session, region):
                 kernels.keep_inliers_at(
                     positions, index, session.labels, session.working, editable, code, parameters,
                     tolerance, region_code, region_parameters, flip,

@@ -8,13 +8,17 @@ Which node a point goes to: each point draws a uniform rank ``r`` (a hash of its
 in the scan, so the build does not depend on chunking). Walking from the root, the point
 stays in the first node ``n`` on its path where ``r < capacity / count(n)`` (``count`` is
 the number of points under ``n``), or where ``n`` is a leaf (at most ``capacity`` points
-under it, or the deepest level). Each node then holds about ``capacity`` points, a uniform
-random subsample of its cube minus what its ancestors took.
+under it). Each node then holds about ``capacity`` points, a uniform random subsample of
+its cube minus what its ancestors took, and at most ``capacity`` (below the octree's
+:data:`~semantic3d.labelling.lod_build.POSITION_DEPTH`, where cells are smaller than the
+float32 copy's resolution, a node's children split its points by a hash of their scan
+positions and share its cube).
 
-The build (:mod:`~semantic3d.labelling.lod_build`) streams the cache four times in
-compiled passes (bounds, cell histogram, node sizes, writing) and holds dense octree
-levels (at most ``8**max_depth`` leaf counters) and one block: memory does not grow with
-the scan. The folder (the labelling app keeps it in its cache folder) holds::
+The build (:mod:`~semantic3d.labelling.lod_build`) streams the cache in compiled passes
+(bounds, cell histogram, a pass or two refining over-full cells into deeper levels, node
+sizes, writing) and holds dense octree levels (``8**dense_depth`` leaf counters), the
+refining blocks and one block: memory does not grow with the scan. The folder (the
+labelling app keeps it in its cache folder) holds::
 
     lod.json          version, source fingerprint, origin, cube, nodes (bounds, start, count)
     positions.npy     (n, 3) float32 metres, re-centred on ``origin``, grouped by node
@@ -46,7 +50,7 @@ from numpy.typing import NDArray
 
 from semantic3d.core.errors import DataFormatError
 from semantic3d.io.cache_meta import META_FILE
-from semantic3d.labelling.lod_build import MAX_DEPTH_LIMIT, build_lod_files, replace_folder
+from semantic3d.labelling.lod_build import DENSE_DEPTH_LIMIT, build_lod_files, replace_folder
 
 __all__ = [
     "DEFAULT_NODE_CAPACITY",
@@ -61,10 +65,11 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-LOD_VERSION = 1
+LOD_VERSION = 2
+"""2: nodes deeper than the dense levels, none above the capacity (1: at most 8 levels)."""
 LOD_FOLDER = f"lod-v{LOD_VERSION}"
 DEFAULT_NODE_CAPACITY = 20_000
-DEFAULT_MAX_DEPTH = 8
+DEFAULT_DENSE_DEPTH = 8
 DEFAULT_CHUNK_SIZE = 1 << 21
 _MANIFEST = "lod.json"
 
@@ -130,7 +135,10 @@ class LodIndex:
         self.origin = np.asarray(data["origin"], np.float64)
         self.cube_min = np.asarray(data["cube_min"], np.float64)
         self.cube_size: float = float(data["cube_size"])
+        self.dense_depth: int = int(data["dense_depth"])
+        self.position_depth: int = int(data["position_depth"])
         self.max_depth: int = int(data["max_depth"])
+        """The deepest node's depth."""
         self.capacity: int = int(data["capacity"])
         self.bounds_min = np.asarray(data["bounds_min"], np.float64)
         self.bounds_max = np.asarray(data["bounds_max"], np.float64)
@@ -146,6 +154,10 @@ class LodIndex:
             )
             for n in data["nodes"]
         )
+        self.node_bounds = np.array([n.bounds for n in self.nodes], np.float64).reshape(-1, 6)
+        """Every node's cube (re-centred x0, y0, z0, x1, y1, z1), by id."""
+        self.node_starts = np.array([n.start for n in self.nodes], np.int64)
+        self.node_counts = np.array([n.count for n in self.nodes], np.int64)
         self._columns: dict[str, tuple[int, int, np.dtype[Any], tuple[int, ...]]] = {}
         self._lock = threading.Lock()
         for name, tail in (("positions", (3,)), ("rgb", (3,)), ("intensity", ()), ("index", ())):
@@ -163,13 +175,18 @@ class LodIndex:
     def _read(self, name: str, start: int, count: int) -> NDArray[Any]:
         descriptor, offset, dtype, tail = self._columns[name]
         row = dtype.itemsize * int(np.prod(tail, dtype=np.int64))
-        data = os.pread(descriptor, count * row, offset + start * row)
-        if len(data) != count * row:
-            raise DataFormatError(
-                f"expected {count * row} bytes at point {start}, found {len(data)}",
-                path=str(self.directory / f"{name}.npy"),
-            )
-        return np.frombuffer(data, dtype).reshape(count, *tail).copy()
+        out = np.empty((count, *tail), dtype)
+        view = memoryview(out.reshape(-1).view(np.uint8))  # type: ignore[arg-type]
+        got = 0
+        while got < count * row:
+            read = os.preadv(descriptor, [view[got:]], offset + start * row + got)
+            if not read:
+                raise DataFormatError(
+                    f"expected {count * row} bytes at point {start}, found {got}",
+                    path=str(self.directory / f"{name}.npy"),
+                )
+            got += read
+        return out
 
     def close(self) -> None:
         """Close the column files."""
@@ -213,6 +230,15 @@ class LodIndex:
         node = self.node(node_id)
         return self._read("index", node.start, node.count).astype(np.int64)
 
+    def read_indices(self, start: int, count: int) -> NDArray[np.uint32]:
+        """Cache positions (uint32) of the points ``start .. start + count`` in node order
+        (node ``n`` holds ``n.start .. n.start + n.count``: consecutive nodes, one read)."""
+        return self._read("index", start, count)
+
+    def read_positions(self, start: int, count: int) -> NDArray[np.float32]:
+        """Float32 re-centred positions of the points ``start .. start + count`` in node order."""
+        return self._read("positions", start, count)
+
     def hierarchy(self) -> dict[str, Any]:
         """What the viewer loads first: origin, bounds and every node."""
         return {
@@ -240,15 +266,16 @@ def open_lod(
     *,
     directory: str | Path | None = None,
     capacity: int = DEFAULT_NODE_CAPACITY,
-    max_depth: int = DEFAULT_MAX_DEPTH,
+    dense_depth: int = DEFAULT_DENSE_DEPTH,
     chunk_size: int = DEFAULT_CHUNK_SIZE,
     progress: Callable[[str, int, int], None] | None = None,
 ) -> LodIndex:
     """The level-of-detail index of the cache folder ``cache``, built on first use.
 
-    A current index (same cache fingerprint, capacity and depth limit) is reopened;
-    otherwise :func:`build_lod` builds it into ``directory`` (default ``cache/lod-v1``;
-    the labelling app keeps it in its cache folder instead).
+    A current index (same format version, cache fingerprint, capacity and dense depth) is
+    reopened; otherwise :func:`build_lod` builds it into ``directory`` (default
+    ``cache/lod-v{LOD_VERSION}``; the labelling app keeps it in its cache folder instead).
+    An index of an older format version is rebuilt.
     """
     cache = Path(cache)
     directory = cache / LOD_FOLDER if directory is None else Path(directory)
@@ -258,13 +285,18 @@ def open_lod(
             index = LodIndex(directory)
         except (DataFormatError, OSError, KeyError, ValueError):
             index = None
-        if index is not None and index.source == fingerprint and index.capacity == capacity:
+        if (
+            index is not None
+            and index.source == fingerprint
+            and index.capacity == capacity
+            and index.dense_depth == dense_depth
+        ):
             return index
     return build_lod(
         cache,
         directory,
         capacity=capacity,
-        max_depth=max_depth,
+        dense_depth=dense_depth,
         chunk_size=chunk_size,
         progress=progress,
     )
@@ -275,20 +307,21 @@ def build_lod(
     directory: str | Path,
     *,
     capacity: int = DEFAULT_NODE_CAPACITY,
-    max_depth: int = DEFAULT_MAX_DEPTH,
+    dense_depth: int = DEFAULT_DENSE_DEPTH,
     chunk_size: int = DEFAULT_CHUNK_SIZE,
     progress: Callable[[str, int, int], None] | None = None,
 ) -> LodIndex:
     """Build the level-of-detail index of the cache ``cache`` into ``directory``.
 
-    ``progress(stage, done_points, total_points)`` is called after each chunk of each of
-    the four passes (stages ``bounds``, ``histogram``, ``counts``, ``write``). The folder
-    is written under a hidden name and renamed into place, replacing an older index.
+    ``progress(stage, done_points, total_points)`` is called after each chunk of each
+    pass (stages ``bounds``, ``histogram``, ``refine`` (once per refining pass, only when
+    cells are over-full), ``counts``, ``write``). The folder is written under a hidden name
+    and renamed into place, replacing an older index.
     """
     if capacity < 1:
         raise ValueError(f"capacity: expected a positive number of points, found {capacity}")
-    if not 0 <= max_depth <= MAX_DEPTH_LIMIT:
-        raise ValueError(f"max_depth: expected 0..{MAX_DEPTH_LIMIT}, found {max_depth}")
+    if not 0 <= dense_depth <= DENSE_DEPTH_LIMIT:
+        raise ValueError(f"dense_depth: expected 0..{DENSE_DEPTH_LIMIT}, found {dense_depth}")
     cache = Path(cache)
     directory = Path(directory)
     fingerprint = cache_fingerprint(cache)
@@ -301,7 +334,7 @@ def build_lod(
             cache,
             staging,
             capacity=capacity,
-            max_depth=max_depth,
+            dense_depth=dense_depth,
             fingerprint=fingerprint,
             version=LOD_VERSION,
             block_points=chunk_size,

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import logging
 import os
+import shutil
 import uuid
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -213,6 +214,8 @@ def open_label_session(
         progress=progress,
         **lod_kwargs,
     )
+    for version in range(1, LOD_VERSION):  # an older format's index, replaced by this one
+        shutil.rmtree(folder / f"{entry_name(scan.path)}.lod-v{version}", ignore_errors=True)
     labels_file = None if labels_path is None else Path(labels_path)
     source = None if start_from is None else Path(start_from)
     prediction = (

@@ -25,7 +25,7 @@ def _scene(seed: int) -> PointCloud:
     rng = np.random.default_rng(seed)
     corner = np.array([652_103.0, 5_412_377.0, 230.0])
     sparse = corner + rng.uniform(0.0, 14.0, (3_000, 3)) * [1, 1, 0.3]
-    dense = corner + [6.1, 5.3, 0.0] + rng.normal(0.0, 0.4, (20_000, 3))
+    dense = corner + np.array([6.1, 5.3, 0.0]) + rng.normal(0.0, 0.4, (20_000, 3))
     edges = corner + np.column_stack(
         [
             np.repeat(np.arange(0.0, 14.0, 0.1), 5),

@@ -4,29 +4,30 @@ import { SelectionTool, describeMeasures } from '/static/tools.js';
 import { RAMP, Viewer } from '/static/viewer.js';
 
 const $ = (id) => document.getElementById(id);
-const EDIT_KEYS = new Set(['d', 'l', 'b', 'p', 'backspace', 'enter']);
+const EDIT_KEYS = new Set(['d', 'l', 'b', 'p', 'w', 'backspace', 'enter']);
 
-// Every key the page knows (the help panel lists this table).
+// Every key the page knows (the help panel lists this table; the viewer only the rows that
+// do not edit). Each row: the keys as the help shows them, what they do, whether they edit.
 const KEYS = [
-  ['Ctrl+Z', 'undo'],
-  ['Ctrl+Y, Ctrl+Shift+Z', 'redo'],
-  ['Ctrl+S', 'save'],
-  ['D', 'draw a polygon (click the vertices)'],
-  ['L', 'lasso (drag around the points)'],
-  ['B', 'brush (paint over the points)'],
-  ['Enter, double-click', 'close the polygon'],
-  ['Backspace', 'remove the polygon\'s last vertex'],
-  ['Escape', 'cancel the selection, the picks or the measure; close this help'],
-  ['P', 'pick points for a model fit'],
-  ['M', 'measure: coordinates, distances, heights'],
-  ['O', 'orbit view'],
-  ['T', 'top view'],
-  ['F', 'front view'],
-  ['S', 'side view'],
-  ['V', '2D view along the current direction'],
-  ['W', 'frame the working set'],
-  ['+, -', 'bigger, smaller points'],
-  ['H, ?', 'this help'],
+  ['Ctrl+Z', 'undo', true],
+  ['Ctrl+Y, Ctrl+Shift+Z', 'redo', true],
+  ['Ctrl+S', 'save', true],
+  ['D', 'draw a polygon (click the vertices)', true],
+  ['L', 'lasso (drag around the points)', true],
+  ['B', 'brush (paint over the points)', true],
+  ['Enter, double-click', 'close the polygon', true],
+  ['Backspace', 'remove the polygon\'s last vertex', true],
+  ['Escape', 'cancel the selection, the picks or the measure; close this help', false],
+  ['P', 'pick points for a model fit', true],
+  ['M', 'measure: coordinates, distances, heights', false],
+  ['O', 'orbit view', false],
+  ['T', 'top view', false],
+  ['F', 'front view', false],
+  ['S', 'side view', false],
+  ['V', '2D view along the current direction', false],
+  ['W', 'frame the working set', true],
+  ['+, =, -', 'bigger (+ or =), smaller (-) points', false],
+  ['H, ?', 'this help', false],
 ];
 
 function storageKey(scan) { return `semantic3d:view:${scan.name}:${scan.hierarchy.n_points}`; }
@@ -48,6 +49,10 @@ class LabelApp {
     document.body.classList.toggle('read-only', this.readOnly);
     $('scan-name').textContent = scan.name;
     const s = scan.summary;
+    if (this.readOnly) { // the viewer's working set is the whole scan
+      $('stats-working').textContent = 'count scan';
+      $('stats-working').title = 'counts (and confusion) of the whole scan';
+    }
     $('mode-line').textContent = this.readOnly ? 'read-only viewer'
       : `labelling → ${s.labels_path}` + (s.started_from ? ` (started from ${s.started_from})` : '');
     if (!s.has_prediction) {
@@ -57,7 +62,8 @@ class LabelApp {
       for (const c of scan.classes) select.add(new Option(`${c.value} ${c.name}`, c.value));
     }
     $('assign-class').value = '1';
-    $('help-keys').innerHTML = KEYS.map(([k, what]) => `<tr><td>${k}</td><td>${what}</td></tr>`).join('');
+    $('help-keys').innerHTML = KEYS.filter(([, , edits]) => !(edits && this.readOnly))
+      .map(([k, what]) => `<tr><td>${k}</td><td>${what}</td></tr>`).join('');
     this.bind();
     this.restoreSettings();
     this.showSummary(s);
@@ -428,7 +434,8 @@ class LabelApp {
     if (!data) return;
     const classes = this.scan.classes;
     const pct = (x) => (x === null ? '–' : (100 * x).toFixed(1));
-    let html = `<table><caption>${scope === 'view' ? 'in view' : 'working set'}: ${data.n_points.toLocaleString()} points</caption>`
+    const where = scope === 'view' ? 'in view' : this.readOnly ? 'scan' : 'working set';
+    let html = `<table><caption>${where}: ${data.n_points.toLocaleString()} points</caption>`
       + '<tr><th>class</th><th>points</th>' + (data.has_prediction ? '<th>predicted</th><th>prec.</th><th>recall</th><th>IoU</th>' : '') + '</tr>';
     classes.forEach((c, value) => {
       html += `<tr><td><span class="swatch" style="background:${c.colour}"></span> ${c.name}</td><td>${data.counts[value].toLocaleString()}</td>`;

@@ -238,7 +238,10 @@ export class Viewer {
   // Views: 'free' orbits; 'top', 'front', 'side' look along the axes; 'free2d' looks along
   // the current viewing direction. 2D views are orthographic with rotation off.
   setView(view) {
-    const previous = this.view ? { position: this.camera.position.clone(), target: this.controls.target.clone() } : null;
+    const previous = this.view ? {
+      position: this.camera.position.clone(), target: this.controls.target.clone(),
+      orthographic: this.camera.isOrthographicCamera, zoom: this.orthographic.zoom,
+    } : null;
     this.view = view;
     if (this.controls) this.controls.dispose();
     const c = previous ? previous.target : this.frame.getCenter(new THREE.Vector3());
@@ -262,8 +265,9 @@ export class Viewer {
         camera.up.set(0, 0, 1);
         if (Math.abs(direction.z) > 0.999) camera.up.set(0, 1, 0);
         camera.position.copy(c).addScaledVector(direction, -d);
+        // The same scale: a 2D view's zoom, or the orbit view's at the target's depth.
         const halfHeight = distance * Math.tan((this.perspective.fov * Math.PI) / 360);
-        this.orthographic.zoom = (this.extent * 0.55) / Math.max(halfHeight, 1e-3);
+        this.orthographic.zoom = previous.orthographic ? previous.zoom : (this.extent * 0.55) / Math.max(halfHeight, 1e-3);
       }
       this.orthographic.updateProjectionMatrix();
     }
