@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from semantic3d.baselines.randla.blocks import VoxelCloud, point_inputs
+from semantic3d.baselines.randla.blocks import VoxelCloud, point_inputs, voxelise
 from semantic3d.baselines.randla.config import InputConfig
 from semantic3d.core.pointcloud import PointCloud
 from semantic3d.spatial.grid import Bounds, TileKey
@@ -143,9 +143,7 @@ def _tile_part(
 
 @dataclass(frozen=True, slots=True)
 class _StripVoxels:
-    centres: NDArray[np.float64]
-    cells: NDArray[np.int64]
-    means: NDArray[np.float32]
+    voxels: VoxelCloud
     keys: NDArray[np.int64]
     core: NDArray[np.bool_]
 
@@ -157,20 +155,11 @@ def _reduce(
     origin: NDArray[np.float64],
     voxel_size_m: float,
 ) -> _StripVoxels:
-    """A strip's points reduced to voxels as :func:`~.blocks.voxelise` does."""
-    cells = compute_cells(xyz, origin=origin, voxel_size_m=voxel_size_m)
-    keys, first, inverse = np.unique(pack_keys(cells), return_index=True, return_inverse=True)
-    inverse = inverse.reshape(-1)
-    m = keys.size
-    counts = np.bincount(inverse, minlength=m).astype(np.float64)
-    centres = np.empty((m, 3), np.float64)
-    for axis in range(3):
-        centres[:, axis] = np.bincount(inverse, weights=xyz[:, axis], minlength=m) / counts
-    means = np.empty((m, values.shape[1]), np.float32)
-    for column in range(values.shape[1]):
-        means[:, column] = np.bincount(inverse, weights=values[:, column], minlength=m) / counts
-    core = np.bincount(inverse, weights=mine, minlength=m) > 0
-    return _StripVoxels(centres, cells[first], means, keys.astype(np.int64), core)
+    """A strip's points reduced to voxels by :func:`~.blocks.voxelise`, with their keys and
+    which of them hold points of the tile (``mine``)."""
+    voxels = voxelise(xyz, origin=origin, voxel_size_m=voxel_size_m, inputs=values)
+    core = np.bincount(voxels.inverse, weights=mine, minlength=voxels.n_voxels) > 0
+    return _StripVoxels(voxels, pack_keys(voxels.cells), core)
 
 
 def read_tile_voxels(
@@ -219,9 +208,9 @@ def read_tile_voxels(
                 )
             )
     voxels = VoxelCloud(
-        np.concatenate([s.centres for s in strips]) if strips else np.empty((0, 3)),
-        np.concatenate([s.cells for s in strips]) if strips else np.empty((0, 3), np.int64),
-        np.concatenate([s.means for s in strips])
+        np.concatenate([s.voxels.xyz for s in strips]) if strips else np.empty((0, 3)),
+        np.concatenate([s.voxels.cells for s in strips]) if strips else np.empty((0, 3), np.int64),
+        np.concatenate([s.voxels.inputs for s in strips])
         if strips
         else np.empty((0, n_inputs), np.float32),
         None,
