@@ -36,7 +36,10 @@ def _scene(seed: int) -> PointCloud:
     xyz = np.concatenate([sparse, dense, edges, dense[:500]])
     xyz = xyz[rng.permutation(len(xyz))]
     return PointCloud.from_arrays(
-        xyz, intensity=rng.integers(-2000, 2000, len(xyz)), rgb=rng.integers(0, 256, (len(xyz), 3))
+        xyz,
+        intensity=rng.integers(-2000, 2000, len(xyz)),
+        rgb=rng.integers(0, 256, (len(xyz), 3)),
+        labels=rng.integers(0, 9, len(xyz)),
     )
 
 
@@ -59,19 +62,20 @@ def test_strips_give_the_whole_blocks_voxels_and_labels(
         whole = PointCloud.concatenate([data.core.cloud, data.halo.cloud])
         expected = voxelise(
             np.asarray(whole.xyz), origin=origin, voxel_size_m=VOXEL,
-            inputs=point_inputs(whole, inputs),
+            inputs=point_inputs(whole, inputs), labels=np.asarray(whole.labels),
         )  # fmt: skip
         in_core = np.zeros(expected.n_voxels, np.bool_)
         in_core[expected.inverse[: data.core.n_points]] = True
 
         held = read_tile_voxels(
             store, tile, halo_m=halo_m, origin=origin, voxel_size_m=VOXEL, inputs=inputs,
-            strip_points=strip_points,
+            labels=True, strip_points=strip_points,
         )  # fmt: skip
         assert np.array_equal(held.voxels.xyz, expected.xyz)  # the same sums: bit for bit
         assert np.array_equal(held.voxels.cells, expected.cells)
         assert np.array_equal(held.voxels.inputs, expected.inputs)
         assert np.array_equal(held.core, in_core)
+        assert np.array_equal(held.voxels.labels, expected.labels)  # training's votes
         assert np.all(np.diff(held.keys) > 0)
 
         voxel_labels = np.random.default_rng(7).integers(1, 9, expected.n_voxels).astype(np.uint8)

@@ -152,12 +152,13 @@ def _reduce(
     xyz: NDArray[np.float64],
     values: NDArray[np.float32],
     mine: NDArray[np.bool_],
+    labels: NDArray[np.uint8] | None,
     origin: NDArray[np.float64],
     voxel_size_m: float,
 ) -> _StripVoxels:
     """A strip's points reduced to voxels by :func:`~.blocks.voxelise`, with their keys and
     which of them hold points of the tile (``mine``)."""
-    voxels = voxelise(xyz, origin=origin, voxel_size_m=voxel_size_m, inputs=values)
+    voxels = voxelise(xyz, origin=origin, voxel_size_m=voxel_size_m, inputs=values, labels=labels)
     core = np.bincount(voxels.inverse, weights=mine, minlength=voxels.n_voxels) > 0
     return _StripVoxels(voxels, pack_keys(voxels.cells), core)
 
@@ -170,11 +171,13 @@ def read_tile_voxels(
     origin: NDArray[np.float64],
     voxel_size_m: float,
     inputs: InputConfig,
+    labels: bool = False,
     strip_points: int = STRIP_POINTS,
 ) -> TileVoxels:
     """The voxels of ``tile`` (all its points) and of its halo of ``halo_m`` (the other
     tiles' points within ``halo_m`` of its rectangle, edges included), as
-    :meth:`~TileStore.read` reads them."""
+    :meth:`~TileStore.read` reads them; with ``labels``, each voxel's most frequent label
+    (the store's labels, as :func:`~.blocks.voxelise` votes)."""
     x_min, y_min, x_max, y_max = store.grid.tile_bounds(tile)
     box = (x_min - halo_m, y_min - halo_m, x_max + halo_m, y_max + halo_m)
     n_inputs = point_inputs(PointCloud.from_arrays(np.zeros((0, 3))), inputs).shape[1]
@@ -188,6 +191,7 @@ def read_tile_voxels(
         xyz_parts: list[NDArray[np.float64]] = []
         input_parts: list[NDArray[np.float32]] = []
         mine_parts: list[NDArray[np.bool_]] = []
+        label_parts: list[NDArray[np.uint8]] = []
         for core in (True, False):  # the tile's own points first, as the whole read
             for _, points in _tile_part(store, tile, strip, voxel_size_m, core=core, others=others):
                 xyz = np.asarray(points.cloud.xyz, np.float64)
@@ -197,12 +201,15 @@ def read_tile_voxels(
                     xyz_parts.append(xyz[keep])
                     input_parts.append(point_inputs(points.cloud[keep], inputs))
                     mine_parts.append(np.full(int(keep.sum()), core))
+                    if labels:
+                        label_parts.append(np.asarray(points.cloud.labels)[keep])
         if xyz_parts:
             strips.append(
                 _reduce(
                     np.concatenate(xyz_parts),
                     np.concatenate(input_parts),
                     np.concatenate(mine_parts),
+                    np.concatenate(label_parts) if labels else None,
                     origin,
                     voxel_size_m,
                 )
@@ -213,7 +220,9 @@ def read_tile_voxels(
         np.concatenate([s.voxels.inputs for s in strips])
         if strips
         else np.empty((0, n_inputs), np.float32),
-        None,
+        np.concatenate([s.voxels.labels for s in strips if s.voxels.labels is not None])
+        if labels and strips
+        else (np.zeros(0, np.uint8) if labels else None),
         np.empty(0, np.int64),  # the points' voxels are found again by core_point_labels
     )
     keys = np.concatenate([s.keys for s in strips]) if strips else np.empty(0, np.int64)

@@ -46,11 +46,12 @@ from semantic3d.baselines.common.training import (
     save_checkpoint,
     training_classes,
 )
-from semantic3d.baselines.randla.blocks import local_coordinates, point_inputs, voxelise, window
+from semantic3d.baselines.randla.blocks import local_coordinates, window
 from semantic3d.baselines.randla.config import RandlaConfig, config_to_dict
 from semantic3d.baselines.randla.levels import CloudLevels, build_levels, stack_levels
 from semantic3d.baselines.randla.model import RandlaModel, grid_anchor, scan_grid
 from semantic3d.baselines.randla.network import build_network
+from semantic3d.baselines.randla.tile_voxels import read_tile_voxels
 from semantic3d.core.classes import N_CLASSES
 from semantic3d.core.errors import require
 from semantic3d.core.pointcloud import PointCloud
@@ -342,16 +343,17 @@ def _round_clouds(
         scan_number, row = where[flat_tile]
         scan = scans[scan_number]
         tile: TileKey = scan.store.tiles[row]
-        data = scan.store.read(tile, halo_m=half_width)
-        core_labels = np.asarray(data.core.cloud.labels)
-        cloud = PointCloud.concatenate([data.core.cloud, data.halo.cloud])
-        voxels = voxelise(
-            np.asarray(cloud.xyz),
+        core_cloud = scan.store.read_core(tile).cloud  # views of the store: not copied
+        core_labels = np.asarray(core_cloud.labels)
+        voxels = read_tile_voxels(  # in strips: memory follows the voxels of a dense tile
+            scan.store,
+            tile,
+            halo_m=half_width,
             origin=grid_anchor(scan.store.grid),
             voxel_size_m=blocks.voxel_size_m,
-            inputs=point_inputs(cloud, config.inputs),
-            labels=np.asarray(cloud.labels),
-        )
+            inputs=config.inputs,
+            labels=True,
+        ).voxels
         voxel_labels = (
             np.zeros(voxels.n_voxels, np.uint8) if voxels.labels is None else voxels.labels
         )
@@ -360,7 +362,7 @@ def _round_clouds(
         for slot in np.flatnonzero(tile_of == flat_tile).tolist():
             value = int(slot_values[slot])
             eligible = np.isin(core_labels, classes) if value == 0 else core_labels == value
-            centre = np.asarray(data.core.cloud.xyz[np.flatnonzero(eligible)[ordinal[slot]]])
+            centre = np.asarray(core_cloud.xyz[np.flatnonzero(eligible)[ordinal[slot]]])
             ids = window(
                 voxels.xyz,
                 centre_xy=centre[:2],
