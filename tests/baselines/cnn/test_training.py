@@ -3,7 +3,6 @@ thread ahead of the steps), stopping and resuming gives it too."""
 
 from __future__ import annotations
 
-import concurrent.futures
 import contextlib
 import dataclasses
 import shutil
@@ -132,12 +131,11 @@ def test_cropped_tiles_give_a_round_the_cubes_of_whole_tiles(
     scans = find_labelled_scans(cnn_scans)
     with contextlib.ExitStack() as stack:
         tiled = [stack.enter_context(_tile_scan(scan, config, None)) for scan in scans]
-        pool = stack.enter_context(concurrent.futures.ThreadPoolExecutor(2))
         for index in (0, 1):
             whole = make_round(tiled, [1, 3, 5, 8], config, index, 2, device="cpu", crop=False)
             points_whole = sum(voxelised)
             voxelised.clear()
-            cropped = make_round(tiled, [1, 3, 5, 8], config, index, 2, device="cpu", pool=pool)
+            cropped = make_round(tiled, [1, 3, 5, 8], config, index, 2, device="cpu", n_threads=2)
             assert sum(voxelised) < points_whole / 2  # the crop leaves most points out
             voxelised.clear()
             assert torch.equal(cropped.packed, whole.packed) and cropped.packed.any()

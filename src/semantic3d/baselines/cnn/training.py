@@ -6,7 +6,7 @@ Each labelled scan is spilled once into a temporary tile store. Training runs in
 of ``rotate_every`` mini-batches, each with its own draw of points and rotation about z
 (:mod:`.rounds`); a producer thread
 (:class:`~semantic3d.baselines.common.pipeline.Prefetched`) makes round ``r + 1``'s cubes
-(a thread pool of tiles, numba on all cores, or the GPU's kernels) while round ``r``
+(tiles side by side on every core, or the GPU's kernels) while round ``r``
 trains, so after the first round the network rarely waits for its input.
 Adadelta and the cross-entropy loss; on a CUDA device under bfloat16 autocast
 (``[training] autocast``) with deterministic cuDNN algorithms. The loss and the confusion
@@ -23,11 +23,9 @@ after the current batch with a checkpoint and :class:`TrainingInterrupted`.
 
 from __future__ import annotations
 
-import concurrent.futures
 import contextlib
 import logging
 import math
-import os
 import threading
 import time
 import uuid
@@ -49,6 +47,7 @@ from semantic3d.baselines.common.pipeline import Prefetched
 from semantic3d.baselines.common.scans import LabelledScan, TrainingDataError
 from semantic3d.core.classes import N_CLASSES, class_by_value
 from semantic3d.core.errors import Semantic3DError, require
+from semantic3d.core.threads import thread_budget
 from semantic3d.spatial.grid import TileGrid
 from semantic3d.spatial.store import TemporaryTileStore
 
@@ -164,8 +163,6 @@ def train_cnn_model(
         totals = sum(s.counts.sum(axis=0) for s in tiled)
         classes = _training_classes(totals, config, names)
         stack.enter_context(_deterministic(cuda))
-        pool = concurrent.futures.ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 1))
-        stack.callback(pool.shutdown, wait=True, cancel_futures=True)
         cancel = threading.Event()
         made = RoundProgress()
         n_rounds = -(-training.n_batches // training.rotate_every)
@@ -183,7 +180,7 @@ def train_cnn_model(
                     index,
                     length,
                     device=torch_device,
-                    pool=pool,
+                    n_threads=thread_budget(),
                     progress=made,
                     cancel=cancel,
                 )
