@@ -142,6 +142,56 @@ def test_cropped_tiles_give_a_round_the_cubes_of_whole_tiles(
             assert torch.equal(cropped.targets, whole.targets)
 
 
+@pytest.mark.parametrize("per_group", [None, 1, 3])
+def test_a_rounds_tiles_filled_side_by_side_give_each_tiles_own_cubes(
+    cnn_scans: Path, per_group: int | None, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The GPU path fills a round's point-centred cubes in one call, every tile moved to a
+    band of its own: the cubes equal the compiled kernel's of each tile alone (run here on
+    the CPU device through the same torch code), in one group or several."""
+    small = dataclasses.replace(TINY.cubes, voxel_sizes_m=(0.05, 0.1, 0.2), centring="point")
+    config = dataclasses.replace(TINY, cubes=small)
+    if per_group is not None:  # as when fewer bands fit the keys' range
+        monkeypatch.setattr(
+            rounds,
+            "_merged_groups",
+            lambda tiles, _config: [
+                list(range(i, min(i + per_group, len(tiles))))
+                for i in range(0, len(tiles), per_group)
+            ],
+        )
+    scans = find_labelled_scans(cnn_scans)
+    with contextlib.ExitStack() as stack:
+        tiled = [stack.enter_context(_tile_scan(scan, config, None)) for scan in scans]
+        for index in (0, 1, 2):
+            compiled = make_round(tiled, [1, 3, 5, 8], config, index, 3, device="cpu")
+            merged = make_round(
+                tiled, [1, 3, 5, 8], config, index, 3, device="cpu", device_cubes=True
+            )
+            assert torch.equal(merged.packed, compiled.packed) and merged.packed.any()
+            assert torch.equal(merged.targets, compiled.targets)
+
+
+def test_a_round_is_cut_into_groups_that_keep_the_keys_in_range() -> None:
+    small = dataclasses.replace(TINY.cubes, voxel_sizes_m=(0.05, 0.1, 0.2), centring="point")
+    config = dataclasses.replace(TINY, cubes=small)
+    rng = np.random.default_rng(0)
+    tiles = []
+    for _ in range(7):
+        xyz = rng.uniform(-6.0, 6.0, (200, 3))
+        tiles.append((None, (xyz[:5], build_occupancy(xyz, origin=np.zeros(3),
+                      voxel_sizes_m=small.voxel_sizes_m, centring="point"))))  # fmt: skip
+    widths = rounds._bands([t for _, t in tiles], config)[1]
+    assert widths[0] >= 2 * (6.0 / 0.05) and widths[0] > widths[1] > widths[2]
+    groups = rounds._merged_groups(tiles, config)
+    assert [i for g in groups for i in g] == list(range(7)) and len(groups) == 1
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(rounds, "MAX_CELL", 2 * widths[0])  # room for 3 bands of the finest
+        groups = rounds._merged_groups(tiles, config)
+    assert [i for g in groups for i in g] == list(range(7))
+    assert max(len(g) for g in groups) == 3
+
+
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
 def test_cuda_training_is_deterministic_and_resumes_to_the_uninterrupted_model(

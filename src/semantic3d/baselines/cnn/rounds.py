@@ -36,7 +36,7 @@ from semantic3d.core.errors import require
 from semantic3d.core.threads import map_in_threads
 from semantic3d.spatial.grid import TileKey
 from semantic3d.spatial.store import TileStore
-from semantic3d.spatial.voxels import pack_keys
+from semantic3d.spatial.voxels import CELL_BITS, CELL_OFFSET, MAX_CELL, pack_keys
 
 torch: Any = require("torch", "torch")
 
@@ -144,6 +144,7 @@ def make_round(
     progress: RoundProgress | None = None,
     crop: bool = True,
     cancel: threading.Event | None = None,
+    device_cubes: bool | None = None,
 ) -> Round:
     """The cubes and targets of round ``round_index`` (``n_batches`` batches) on ``device``.
 
@@ -159,6 +160,8 @@ def make_round(
         progress: counts the points whose cubes are done.
         crop: crop tiles to the drawn points' neighbourhoods (same cubes; off for tests).
         cancel: when set, the round is abandoned between tiles (:class:`RoundCancelledError`).
+        device_cubes: fill the cubes with the torch kernels on ``device`` (default: on a
+            CUDA device only; the compiled kernels elsewhere).
     """
     device = torch.device(device)
     draw = draw_round(scans, classes, config, round_index, n_batches)
@@ -168,7 +171,7 @@ def make_round(
     if progress is not None:
         progress.start(round_index, n_points)
     where = [(s, row) for s, scan in enumerate(scans) for row in range(len(scan.tiles))]
-    on_device = device.type == "cuda"
+    on_device = device.type == "cuda" if device_cubes is None else device_cubes
     flat_tiles = np.unique(draw.tile_of).tolist()
 
     def prepare(flat_tile: int) -> tuple[NDArray[np.int64], Any]:
@@ -205,6 +208,16 @@ def make_round(
     from semantic3d.baselines.cnn.point_cubes_torch import pack_cubes
 
     packed_device = torch.zeros((n_points, n_bytes), dtype=torch.uint8, device=device)
+    if cubes.centring == "point":  # the round's tiles side by side: one fill on the device
+        tiles = list(prepared)
+        _check(cancel)
+        for group in _merged_groups(tiles, config):
+            slots = np.concatenate([tiles[i][0] for i in group])
+            filled = _merged_point_cubes([tiles[i][1] for i in group], config, device)
+            packed_device[torch.as_tensor(slots, device=device)] = pack_cubes(filled)
+            if progress is not None:
+                progress.add(slots.size)
+        return Round(round_index, packed_device, targets.to(device, non_blocking=True))
     for slots, (chosen, occupancy) in prepared:
         _check(cancel)
         filled = _device_cubes(occupancy, chosen, config, device)
@@ -275,6 +288,96 @@ def _near(points: NDArray[np.float64], queries: NDArray[np.float64], reach: floa
     keys = pack_keys(cells)
     found = np.minimum(np.searchsorted(wanted, keys), wanted.size - 1)
     return wanted[found] == keys
+
+
+def _bands(
+    tiles: list[tuple[NDArray[np.float64], Occupancy]], config: CnnConfig
+) -> tuple[list[tuple[NDArray[np.int64], NDArray[np.float64]]], list[int]]:
+    """Per scale, the tiles' points' cells and fractions and the width (cells) of the band
+    each tile is moved to along x so that no cube of one tile reaches another's cells:
+    twice the largest distance, in cells, of a tile's occupied cells or points from the
+    tile's centre, plus a block's reach."""
+    from semantic3d.baselines.cnn.point_cubes_torch import compute_anchors
+
+    cubes = config.cubes
+    anchors = [
+        compute_anchors(chosen, origin=np.zeros(3), voxel_sizes_m=cubes.voxel_sizes_m)
+        for chosen, _ in tiles
+    ]
+    reach = cubes.cube_voxels // 2 + 2
+    widths = []
+    for scale in range(cubes.n_scales):
+        extent = 0
+        for (cells, _), (_, occupancy) in zip(anchors, tiles, strict=True):
+            summary = occupancy.summaries[scale]  # type: ignore[index]
+            if cells.size:
+                extent = max(extent, int(np.abs(cells[:, scale, 0]).max()))
+            if summary.keys.size:
+                x = (summary.keys >> (2 * CELL_BITS)) - CELL_OFFSET
+                extent = max(extent, int(np.abs(x).max()))
+        widths.append(2 * (extent + reach) + 1)
+    return anchors, widths
+
+
+def _merged_groups(tiles: list[tuple[Any, Any]], config: CnnConfig) -> list[list[int]]:
+    """The round's tiles in groups whose bands keep every cell within the packed keys'
+    range (all of a round's tiles at once but for huge rounds)."""
+    if not tiles:
+        return []
+    widest = max(_bands([t for _, t in tiles], config)[1])
+    per_group = max(1, (2 * MAX_CELL) // widest - 1)
+    return [list(range(i, min(i + per_group, len(tiles)))) for i in range(0, len(tiles), per_group)]
+
+
+def _merged_point_cubes(
+    tiles: list[tuple[NDArray[np.float64], Occupancy]], config: CnnConfig, device: Any
+) -> Any:
+    """Point-centred cubes of several tiles' points in one device fill. At every scale
+    tile ``k``'s cells move by ``k`` bands along x (whole cells: every summary row and point
+    fraction stays as it was) and the tiles' summaries are laid end to end, in key order.
+    A cube reads only the cells of its block, within its own band: the cubes equal each
+    tile's own, bit for bit."""
+    from semantic3d.baselines.cnn.point_cubes import CellSummaries
+    from semantic3d.baselines.cnn.point_cubes_torch import DevicePointCubes
+
+    cubes = config.cubes
+    anchors, widths = _bands(tiles, config)
+    first = -(len(tiles) // 2)  # bands centred on cell 0
+    merged: list[CellSummaries] = []
+    for scale, width in enumerate(widths):
+        keys, starts, rows_t, rows, filters = [], [], [], [], []
+        n_rows = n_filters = 0
+        for k, (_, occupancy) in enumerate(tiles):
+            summary = occupancy.summaries[scale]  # type: ignore[index]
+            keys.append(summary.keys + (((first + k) * width) << (2 * CELL_BITS)))
+            starts.append(summary.starts[:-1] + n_rows)
+            rows_t.append(summary.fractions)
+            rows.append(np.where(summary.filter_rows < 0, -1, summary.filter_rows + n_filters))
+            filters.append(summary.filters)
+            n_rows += summary.fractions.shape[0]
+            n_filters += summary.filters.shape[0]
+        merged.append(
+            CellSummaries(
+                np.concatenate(keys),
+                np.concatenate([*starts, np.array([n_rows], np.int64)]),
+                np.concatenate(rows_t),
+                np.concatenate(rows).astype(np.int64),
+                np.concatenate(filters),
+            )
+        )
+    held = DevicePointCubes(
+        Occupancy(np.zeros(3), tuple(cubes.voxel_sizes_m), tuple(m.keys for m in merged),
+                  tuple(merged)),
+        device=device,
+        cube_voxels=cubes.cube_voxels,
+    )  # fmt: skip
+    cells = np.concatenate([tile_cells for tile_cells, _ in anchors])
+    offsets = np.concatenate(
+        [np.full(tile_cells.shape[0], first + k) for k, (tile_cells, _) in enumerate(anchors)]
+    )
+    cells[:, :, 0] += offsets[:, None] * np.asarray(widths)[None, :]
+    splits = np.concatenate([tile_splits for _, tile_splits in anchors])
+    return held.fill(cells, splits, dtype=torch.uint8)
 
 
 def _device_cubes(
