@@ -2,9 +2,10 @@
 
 :class:`Prefetched` runs an iterator in a thread and hands its items over through a queue
 of ``depth`` places, so the producer runs at most ``depth + 1`` items ahead. It serves
-both the labelling loop (the next batch's cubes while the network classifies this one)
-and training (round ``r + 1``'s cubes while round ``r`` trains). The producer's work is
-numba kernels and torch operations, which release the GIL, so it truly overlaps.
+the CNN's labelling loop (the next batch's cubes while the network classifies this one)
+and the networks' training (round ``r + 1``'s cubes or sub-clouds while round ``r``
+trains). The producer's work is numba kernels and torch operations, which release the
+GIL, so it truly overlaps. Needs torch (the networks' extras).
 
 On a CUDA device the producer issues its work on a stream of its own: each item is
 handed over with an event the consumer's stream waits on (the consumer never waits on the
