@@ -101,7 +101,7 @@ def test_a_tile_without_drawn_points_gives_no_rows(scan_dir: Path, tmp_path: Pat
         rows = [
             tile_training_rows(str(tiled.workdir), state, str(selection), t) for t in tiled.tiles
         ]
-        assert open_tiled_scan(str(tiled.workdir), state, tiled.tiles[0]).n_points == tiled.n_points
+        assert open_tiled_scan(str(tiled.workdir), state).n_points == tiled.n_points
     found = [r for r in rows if r[0].size]
     assert len(found) == 1 and found[0][0].tolist() == [0]
     assert found[0][1].shape == (1, TINY_CONFIG.features.n_features)

@@ -132,7 +132,7 @@ def label_tile(scan_folder: str, scan_state: bytes, model_path: str, tile: TileK
         model_path: the pickled model.
         tile: the tile to label.
     """
-    opened = open_tiled_scan(scan_folder, scan_state, tile)
+    opened = open_tiled_scan(scan_folder, scan_state)
     features = opened.tile_features(tile)
     if features is None:
         return np.empty(0, np.int64), np.empty(0, np.uint8)

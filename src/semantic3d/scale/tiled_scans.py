@@ -3,9 +3,9 @@
 The client streams a scan into a :class:`~semantic3d.features.tiling.TiledScan` in a
 scratch folder the workers see and sends its pickled state (paths and numbers) with each
 tile task. A worker unpickles it once per scan and keeps it, with its pyramid cache and
-shared levels, for the scan's next tiles; a scan's tile store is reopened after
-:data:`REOPEN_BYTES` have been read from it, so the pages of its memory map are released
-instead of piling up in a long-lived worker (they count in the memory Dask limits).
+shared levels, for the scan's next tiles. The store maps its files anew every
+:data:`~semantic3d.spatial.store.REMAP_BYTES` read, so the pages of its maps do not pile up
+in a long-lived worker (they count in the memory Dask limits).
 """
 
 from __future__ import annotations
@@ -15,28 +15,19 @@ from collections import OrderedDict
 
 from semantic3d.features.tiling import TiledScan
 from semantic3d.spatial.grid import TileKey
-from semantic3d.spatial.store import TileStore
 
-__all__ = ["RECORD_BYTES", "REOPEN_BYTES", "densest_first", "open_tiled_scan"]
-
-RECORD_BYTES = 44
-"""Bytes of one point in a tile store."""
-
-REOPEN_BYTES = 128 << 20
-"""A worker reopens a scan's tile store after reading this much of it."""
+__all__ = ["densest_first", "open_tiled_scan"]
 
 _KEPT_SCANS = 2
 _OPEN_SCANS: OrderedDict[str, TiledScan] = OrderedDict()
-_READ_BYTES: dict[str, int] = {}
 
 
-def open_tiled_scan(folder: str, state: bytes, tile: TileKey) -> TiledScan:
-    """This process's copy of the scan in ``folder``, ready to read ``tile``.
+def open_tiled_scan(folder: str, state: bytes) -> TiledScan:
+    """This process's copy of the scan in ``folder``.
 
     Args:
         folder: the scan's scratch folder (the key it is kept under).
         state: the pickled :class:`TiledScan`, as the client sent it.
-        tile: the tile about to be read (counted against :data:`REOPEN_BYTES`).
     """
     opened = _OPEN_SCANS.get(folder)
     if opened is None:
@@ -47,11 +38,6 @@ def open_tiled_scan(folder: str, state: bytes, tile: TileKey) -> TiledScan:
             _OPEN_SCANS.popitem(last=False)
     else:
         _OPEN_SCANS.move_to_end(folder)
-    read = _READ_BYTES.get(folder, 0) + RECORD_BYTES * opened.store.count(tile)
-    if read > REOPEN_BYTES:
-        opened.store = TileStore(opened.store.directory or "")
-        read = 0
-    _READ_BYTES[folder] = read
     return opened
 
 

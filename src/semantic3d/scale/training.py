@@ -126,7 +126,7 @@ def tile_training_rows(
         selection_path: the ``.npy`` file of the scan's drawn points (sorted, unique).
         tile: the tile to describe.
     """
-    opened = open_tiled_scan(scan_folder, scan_state, tile)
+    opened = open_tiled_scan(scan_folder, scan_state)
     features = opened.tile_features(tile, select=_load_selection(selection_path))
     if features is None:
         return np.empty(0, np.int64), np.empty((0, 0), np.float32), np.empty(0, np.uint8)

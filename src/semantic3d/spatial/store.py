@@ -68,8 +68,9 @@ OFFSETS_FILE = "offsets.npy"
 STARTS_FILE = "starts.npy"
 KEYS_FILE = "keys.npy"
 DEFAULT_SUBDIVISIONS = 32
-REMAP_BYTES = 1 << 28
-"""Records read through one mapping of a store's files before they are mapped anew."""
+REMAP_BYTES = 1 << 27
+"""Records read through one mapping of a store's files before they are mapped anew (a
+process, a Dask worker among them, keeps at most about this much of a store resident)."""
 DEFAULT_BUFFER_POINTS = 1 << 22
 _SMALL_TILE_POINTS = 4096
 """Tiles this small are filtered whole: cheaper than gathering their sub-cells."""
