@@ -141,20 +141,24 @@ def compute_level_features(
     # another compilation (~10 s) on first use. A column slice goes through a block.
     indices = np.ascontiguousarray(found.indices, dtype=np.uint32)
     target = out[:, :column]
-    block = target if target.flags.c_contiguous else np.empty(target.shape, np.float32)
+    if out.flags.c_contiguous:  # the kernels write the first columns of each row
+        block = out  # its pages first touched by the kernels' threads, not copied into
+    elif target.flags.c_contiguous:
+        block = target
+    else:
+        block = np.empty(target.shape, np.float32)
     kernel = geometry_kernel if config.spherical_height else covariance_kernel
     kernel(index.xyz, indices, queries, block)
-    if block is not target:
-        target[...] = block
+    if block is not target and block is not out:
+        _copy_rows(block, target)
     reach = found.kth_distance
     if config.cylinders:
         radius_m = config.cylinder_radius_m(level)
         width = len(config.cylinder_features)
         cylinders = compute_cylinder_features(index.xyz, queries, radius_m=radius_m)
-        if width == N_CYLINDER_COLUMNS:
-            out[:, column : column + width] = cylinders
-        else:
-            out[:, column : column + width] = cylinders[:, _cylinder_columns(config)]
+        if width != N_CYLINDER_COLUMNS:
+            cylinders = np.ascontiguousarray(cylinders[:, _cylinder_columns(config)])
+        _copy_rows(cylinders, out[:, column : column + width])
         column += width
         reach = np.maximum(reach, radius_m)
     if config.colour or config.intensity:
@@ -300,3 +304,12 @@ def _scatter_rows(
         source = inverse[row]
         for column in range(block.shape[1]):
             out[row, column] = block[source, column]
+
+
+# Hand-written: ``out[...] = block`` runs on one thread, and the first copy into a fresh
+# table also faults in its pages there; on 16 cores that was a serial share of every tile.
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _copy_rows(block: NDArray[np.float32], out: NDArray[np.float32]) -> None:  # pragma: no cover
+    for row in numba.prange(block.shape[0]):
+        for column in range(block.shape[1]):
+            out[row, column] = block[row, column]

@@ -6,6 +6,8 @@ import itertools
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from semantic3d.baselines.covariance.context import (
     alpha_expansion,
@@ -199,3 +201,54 @@ def test_neighbour_lists_give_the_graph_and_each_group_is_labelled_alone() -> No
     )
     with pytest.raises(ShapeError, match=r"neighbours: expected rows in -1\.\.599"):
         label_rows(proba, None, potts_weight=2.0, neighbours=lists + n)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    n=st.integers(1, 9000),
+    extra=st.integers(0, 3),
+    n_groups=st.integers(1, 5),
+    seed=st.integers(0, 2**16),
+)
+def test_grouped_edges_are_each_groups_own_edges_in_list_order(
+    n: int, extra: int, n_groups: int, seed: int
+) -> None:
+    """The compiled grouping (blocks of rows counted, then written in block order) gives
+    exactly what filtering and stably sorting the whole graph's edges by group gives."""
+    from semantic3d.baselines.covariance._context_kernels import grouped_edges, undirected_edges
+
+    rng = np.random.default_rng(seed)
+    width = 5
+    lists = rng.integers(-1, n, (n, width + extra))
+    lists[:, 0] = np.arange(n)  # each row first, as the features give them
+    group = np.sort(rng.integers(0, n_groups, n)) if seed % 2 else rng.integers(0, n_groups, n)
+    order = np.argsort(group, kind="stable")
+    bounds = np.searchsorted(group[order], np.arange(n_groups + 1))
+    local = np.empty(n, np.int64)
+    local[order] = np.arange(n) - np.repeat(bounds[:-1], np.diff(bounds))
+    edges, edge_bounds = grouped_edges(lists, width, group, local, n_groups)
+
+    whole = undirected_edges(np.ascontiguousarray(lists[:, :width]))
+    whole = whole[group[whole[:, 0]] == group[whole[:, 1]]]
+    whole = whole[np.argsort(group[whole[:, 0]], kind="stable")]
+    np.testing.assert_array_equal(edges, local[whole])
+    np.testing.assert_array_equal(
+        edge_bounds, np.searchsorted(group[whole[:, 0]], np.arange(n_groups + 1))
+    )
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    ids=st.lists(st.one_of(st.integers(0, 40), st.integers(-(2**40), 2**40)), min_size=1),
+    runs=st.integers(1, 40),
+)
+def test_dense_groups_equal_numpy_unique(ids: list[int], runs: int) -> None:
+    """Ids in any order, and in runs (rows gathered tile by tile)."""
+    from semantic3d.baselines.covariance.context import _dense_groups
+
+    row_group = np.repeat(np.array(ids, np.int64), runs)
+    groups, inverse = _dense_groups(row_group)
+    expected, expected_inverse = np.unique(row_group, return_inverse=True)
+    np.testing.assert_array_equal(groups, expected)
+    np.testing.assert_array_equal(inverse, expected_inverse.reshape(-1))
+    assert inverse.dtype == np.int64

@@ -240,12 +240,10 @@ def graph_edges(
 
     if lists_suffice(neighbours, n_neighbours):
         assert neighbours is not None
-        if neighbours.shape[0] != n_rows:
-            raise ShapeError(f"neighbours: expected {n_rows} rows, found {neighbours.shape[0]}")
-        lists = np.ascontiguousarray(neighbours[:, : n_neighbours + 1], dtype=np.int64)
-        if lists.size and (lists.max() >= n_rows or lists.min() < -1):
-            raise ShapeError(f"neighbours: expected rows in -1..{n_rows - 1}")
-        edges: NDArray[np.int64] = undirected_edges(lists)
+        lists = _checked_lists(neighbours, n_rows, n_neighbours)
+        edges: NDArray[np.int64] = undirected_edges(
+            np.ascontiguousarray(lists[:, : n_neighbours + 1])
+        )
         return edges
     if row_xyz is None:
         raise ShapeError(
@@ -255,6 +253,40 @@ def graph_edges(
     if row_xyz.shape != (n_rows, 3):
         raise ShapeError(f"row_xyz: expected ({n_rows}, 3), found {row_xyz.shape}")
     return knn_edges(row_xyz, k=n_neighbours)
+
+
+def _checked_lists(
+    neighbours: NDArray[np.int64], n_rows: int, n_neighbours: int
+) -> NDArray[np.int64]:
+    """``neighbours`` as C-ordered int64, its first ``n_neighbours + 1`` columns checked."""
+    if neighbours.shape[0] != n_rows:
+        raise ShapeError(f"neighbours: expected {n_rows} rows, found {neighbours.shape[0]}")
+    lists = np.ascontiguousarray(neighbours, dtype=np.int64)
+    used = lists[:, : n_neighbours + 1]
+    if used.size and (used.max() >= n_rows or used.min() < -1):
+        raise ShapeError(f"neighbours: expected rows in -1..{n_rows - 1}")
+    return lists
+
+
+def _dense_groups(row_group: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """``np.unique(row_group, return_inverse=True)`` in linear time where it can: ids that
+    come in long runs (rows gathered tile by tile) by their runs, small non-negative ids by
+    marking a table; sorting only otherwise."""
+    n = row_group.size
+    change = np.flatnonzero(row_group[1:] != row_group[:-1]) + 1
+    if change.size < n // 16:
+        starts = np.concatenate(([0], change))
+        groups, run_rank = np.unique(row_group[starts], return_inverse=True)
+        lengths = np.diff(np.append(starts, n))
+        return groups, np.repeat(run_rank.reshape(-1).astype(np.int64), lengths)
+    low, high = int(row_group.min()), int(row_group.max())
+    if low < 0 or high >= max(1 << 20, 4 * n):
+        groups, inverse = np.unique(row_group, return_inverse=True)
+        return groups, inverse.reshape(-1).astype(np.int64, copy=False)
+    present = np.zeros(high + 1, np.bool_)
+    present[row_group] = True
+    rank = np.cumsum(present, dtype=np.int64) - 1
+    return np.flatnonzero(present).astype(np.int64), rank[row_group]
 
 
 def lists_suffice(neighbours: NDArray[np.int64] | None, n_neighbours: int) -> bool:
@@ -284,7 +316,7 @@ def label_rows_by_group(
         raise ShapeError(f"row_group: expected ({n},), found {row_group.shape}")
     if potts_weight <= 0 or n < 2:
         return np.argmax(proba, axis=1).astype(np.int64)
-    groups, inverse = np.unique(row_group, return_inverse=True)
+    groups, inverse = _dense_groups(np.asarray(row_group, np.int64))
     if groups.size <= 1:
         return label_rows(
             proba,
@@ -294,27 +326,23 @@ def label_rows_by_group(
             max_sweeps=max_sweeps,
             neighbours=neighbours,
         )
-    edges = (
-        graph_edges(n, None, n_neighbours=n_neighbours, neighbours=neighbours)
-        if lists_suffice(neighbours, n_neighbours)
-        else None
-    )
     result = np.empty(n, np.int64)
     order = np.argsort(inverse, kind="stable")
     bounds = np.searchsorted(inverse[order], np.arange(groups.size + 1))
-    if edges is not None:
-        # each group's own edges, in their order, renumbered within the group
-        edges = edges[inverse[edges[:, 0]] == inverse[edges[:, 1]]]
-        by_group = np.argsort(inverse[edges[:, 0]], kind="stable")
-        edges = edges[by_group]
-        edge_bounds = np.searchsorted(inverse[edges[:, 0]], np.arange(groups.size + 1))
+    edges = edge_bounds = None
+    if lists_suffice(neighbours, n_neighbours):
+        assert neighbours is not None
+        from semantic3d.baselines.covariance._context_kernels import grouped_edges
+
+        # each group's own edges, in their order, numbered within the group
         local = np.empty(n, np.int64)
         local[order] = np.arange(n) - np.repeat(bounds[:-1], np.diff(bounds))
-        unary = unary_costs(proba)
+        lists = _checked_lists(neighbours, n, n_neighbours)
+        edges, edge_bounds = grouped_edges(lists, n_neighbours + 1, inverse, local, groups.size)
 
     def label_group(number: int) -> NDArray[np.int64]:
         rows = order[bounds[number] : bounds[number + 1]]  # ascending: the group's order
-        if edges is None:
+        if edges is None or edge_bounds is None:
             return label_rows(
                 proba[rows],
                 None if row_xyz is None else row_xyz[rows],
@@ -322,8 +350,9 @@ def label_rows_by_group(
                 n_neighbours=n_neighbours,
                 max_sweeps=max_sweeps,
             )
-        group_edges = local[edges[edge_bounds[number] : edge_bounds[number + 1]]]
-        return alpha_expansion(unary[rows], group_edges, weight=potts_weight, max_sweeps=max_sweeps)
+        group_edges = edges[edge_bounds[number] : edge_bounds[number + 1]]
+        unary = unary_costs(proba[rows])  # in the group's task: on its thread
+        return alpha_expansion(unary, group_edges, weight=potts_weight, max_sweeps=max_sweeps)
 
     # groups cut at the same time (the cuts release the GIL); each group's labels alone
     for number, labels in enumerate(
