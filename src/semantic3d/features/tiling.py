@@ -273,8 +273,10 @@ class TiledScan:
 
     def _build_pyramids(self) -> None:
         """Every tile's pyramid, written to the scratch folder: tiles at the same time on
-        the thread budget's threads; the level sizes are summed in tile order."""
-        for sizes in map_in_threads(self._build_pyramid, self.tiles, name="s3d-pyramid"):
+        the thread budget's threads, the largest first (the last to end is then a small
+        one); the level sizes are summed."""
+        order = sorted(self.tiles, key=lambda tile: (-self.store.count(tile), tile))
+        for sizes in map_in_threads(self._build_pyramid, order, name="s3d-pyramid"):
             for number, n_voxels in enumerate(sizes):
                 self._level_sizes[number] += n_voxels
 
