@@ -198,8 +198,11 @@ def summarise(runs: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 # -- simulated scenes ---------------------------------------------------------------------
-def simulated_transfer(n_points: int, batches: int | None, folder: Path) -> dict[str, Any]:
-    """Train on one simulated scene, label another (both ways), both baselines."""
+def simulated_transfer(
+    n_points: int, batches: int | None, folder: Path, threads: int = 1
+) -> dict[str, Any]:
+    """Train on one simulated scene, label another (both ways), both baselines; torch on
+    ``threads`` threads."""
     import dataclasses
 
     import torch
@@ -211,7 +214,7 @@ def simulated_transfer(n_points: int, batches: int | None, folder: Path) -> dict
     from semantic3d.baselines.randla.training import train_randla_model
     from semantic3d.datasets.simulator import simulate
 
-    torch.set_num_threads(1)
+    torch.set_num_threads(max(1, threads))
     folder.mkdir(parents=True, exist_ok=True)
     names = []
     for scene, seed in (("street", 1), ("village", 2)):
@@ -554,7 +557,12 @@ def main() -> None:
     parser.add_argument("--seeds", default="0,1,2")
     parser.add_argument("--folds", default="0,1,2,3,4")
     parser.add_argument("--batches", type=int, default=None, help="override n_batches")
-    parser.add_argument("--jobs", type=int, default=2, help="fold runs at a time (processes)")
+    parser.add_argument(
+        "--jobs",
+        type=int,
+        default=2,
+        help="cv: fold runs at a time (processes); sim: torch threads",
+    )
     parser.add_argument("--sizes", default="1000000,4000000,16000000")
     parser.add_argument("--sim-points", type=int, default=500_000)
     parser.add_argument("--model", type=Path, default=None, help="speed: this model, untrained")
@@ -591,7 +599,9 @@ def main() -> None:
             )
     results: dict[str, Any] = {}
     if "sim" in sections:
-        results["sim"] = simulated_transfer(args.sim_points, args.batches, args.workdir / "sim")
+        results["sim"] = simulated_transfer(
+            args.sim_points, args.batches, args.workdir / "sim", args.jobs
+        )
     if "speed" in sections and args.data.is_dir():
         results["speed"] = speed(args.workdir / "speed", args.batches or 300, args.data, args.model)
     if "device" in sections:
