@@ -46,6 +46,16 @@ def _views(xyz: np.ndarray) -> list[tuple[str, np.ndarray, np.ndarray]]:
     ]
 
 
+def _every_point(session, xyz, editable, matrix, polygon, keep_inside) -> np.ndarray:
+    """The split's bits from the pass over every point (the reference)."""
+    expected = empty_bits(session.n_points)
+    _op_kernels.split_flips(
+        xyz, 0, session.origin, session.labels, session.working, editable,
+        matrix, polygon, keep_inside, expected,
+    )  # fmt: skip
+    return expected
+
+
 def test_a_split_over_nodes_equals_the_pass_over_every_point(session, simulated_scan) -> None:
     xyz = np.asarray(session.scan.xyz)
     local = xyz - session.origin
@@ -57,11 +67,7 @@ def test_a_split_over_nodes_equals_the_pass_over_every_point(session, simulated_
     seen = {"retested": 0, "across": 0, "whole": 0, "inside": 0, "outside": 0}
     for name, matrix, polygon in _views(local):
         for keep_inside in (True, False):
-            expected = empty_bits(session.n_points)
-            _op_kernels.split_flips(
-                xyz, 0, session.origin, session.labels, session.working, editable,
-                matrix, polygon, keep_inside, expected,
-            )  # fmt: skip
+            expected = _every_point(session, xyz, editable, matrix, polygon, keep_inside)
             flip = empty_bits(session.n_points)
             counts = split_flips_by_nodes(
                 session, matrix, polygon, keep_inside=keep_inside, editable=editable, flip=flip
@@ -86,11 +92,7 @@ def test_a_split_over_nodes_on_threads_equals_it_on_one(session, simulated_scan,
     editable[2] = False
     for name, matrix, polygon in _views(xyz - session.origin):
         for keep_inside in (True, False):
-            expected = empty_bits(session.n_points)
-            _op_kernels.split_flips(
-                xyz, 0, session.origin, session.labels, session.working, editable,
-                matrix, polygon, keep_inside, expected,
-            )  # fmt: skip
+            expected = _every_point(session, xyz, editable, matrix, polygon, keep_inside)
             outcomes = []
             for threads in (1, 3):
                 flip = empty_bits(session.n_points)
