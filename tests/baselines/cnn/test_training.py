@@ -155,9 +155,8 @@ def test_a_rounds_tiles_filled_side_by_side_give_each_tiles_own_cubes(
         monkeypatch.setattr(
             rounds,
             "_merged_groups",
-            lambda tiles, _config: [
-                list(range(i, min(i + per_group, len(tiles))))
-                for i in range(0, len(tiles), per_group)
+            lambda n_tiles, _widest: [
+                list(range(i, min(i + per_group, n_tiles))) for i in range(0, n_tiles, per_group)
             ],
         )
     scans = find_labelled_scans(cnn_scans)
@@ -183,11 +182,11 @@ def test_a_round_is_cut_into_groups_that_keep_the_keys_in_range() -> None:
                       voxel_sizes_m=small.voxel_sizes_m, centring="point"))))  # fmt: skip
     widths = rounds._bands([t for _, t in tiles], config)[1]
     assert widths[0] >= 2 * (6.0 / 0.05) and widths[0] > widths[1] > widths[2]
-    groups = rounds._merged_groups(tiles, config)
+    groups = rounds._merged_groups(len(tiles), max(widths))
     assert [i for g in groups for i in g] == list(range(7)) and len(groups) == 1
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(rounds, "MAX_CELL", 2 * widths[0])  # room for 3 bands of the finest
-        groups = rounds._merged_groups(tiles, config)
+        groups = rounds._merged_groups(len(tiles), max(widths))
     assert [i for g in groups for i in g] == list(range(7))
     assert max(len(g) for g in groups) == 3
 

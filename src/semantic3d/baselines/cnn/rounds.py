@@ -211,9 +211,12 @@ def make_round(
     if cubes.centring == "point":  # the round's tiles side by side: one fill on the device
         tiles = list(prepared)
         _check(cancel)
-        for group in _merged_groups(tiles, config):
+        anchors, widths = _bands([tile for _, tile in tiles], config)
+        for group in _merged_groups(len(tiles), max(widths)):
             slots = np.concatenate([tiles[i][0] for i in group])
-            filled = _merged_point_cubes([tiles[i][1] for i in group], config, device)
+            filled = _merged_point_cubes(
+                [tiles[i][1] for i in group], [anchors[i] for i in group], widths, config, device
+            )
             packed_device[torch.as_tensor(slots, device=device)] = pack_cubes(filled)
             if progress is not None:
                 progress.add(slots.size)
@@ -319,29 +322,30 @@ def _bands(
     return anchors, widths
 
 
-def _merged_groups(tiles: list[tuple[Any, Any]], config: CnnConfig) -> list[list[int]]:
-    """The round's tiles in groups whose bands keep every cell within the packed keys'
-    range (all of a round's tiles at once but for huge rounds)."""
-    if not tiles:
-        return []
-    widest = max(_bands([t for _, t in tiles], config)[1])
+def _merged_groups(n_tiles: int, widest: int) -> list[list[int]]:
+    """The round's ``n_tiles`` tiles in groups whose bands (``widest`` cells at most) keep
+    every cell within the packed keys' range (all of a round's tiles at once but for huge
+    rounds)."""
     per_group = max(1, (2 * MAX_CELL) // widest - 1)
-    return [list(range(i, min(i + per_group, len(tiles)))) for i in range(0, len(tiles), per_group)]
+    return [list(range(i, min(i + per_group, n_tiles))) for i in range(0, n_tiles, per_group)]
 
 
 def _merged_point_cubes(
-    tiles: list[tuple[NDArray[np.float64], Occupancy]], config: CnnConfig, device: Any
+    tiles: list[tuple[NDArray[np.float64], Occupancy]],
+    anchors: list[tuple[NDArray[np.int64], NDArray[np.float64]]],
+    widths: list[int],
+    config: CnnConfig,
+    device: Any,
 ) -> Any:
-    """Point-centred cubes of several tiles' points in one device fill. At every scale
-    tile ``k``'s cells move by ``k`` bands along x (whole cells: every summary row and point
-    fraction stays as it was) and the tiles' summaries are laid end to end, in key order.
-    A cube reads only the cells of its block, within its own band: the cubes equal each
-    tile's own, bit for bit."""
+    """Point-centred cubes of several tiles' points in one device fill (``anchors`` and
+    band ``widths`` from :func:`_bands`). At every scale tile ``k``'s cells move by ``k``
+    bands along x (whole cells: every summary row and point fraction stays as it was) and
+    the tiles' summaries are laid end to end, in key order. A cube reads only the cells of
+    its block, within its own band: the cubes equal each tile's own, bit for bit."""
     from semantic3d.baselines.cnn.point_cubes import CellSummaries
     from semantic3d.baselines.cnn.point_cubes_torch import DevicePointCubes
 
     cubes = config.cubes
-    anchors, widths = _bands(tiles, config)
     first = -(len(tiles) // 2)  # bands centred on cell 0
     merged: list[CellSummaries] = []
     for scale, width in enumerate(widths):
