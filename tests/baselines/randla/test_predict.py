@@ -144,3 +144,50 @@ def test_cuda_labels_agree_with_cpu_labels(trained: Any) -> None:
     on_cpu = trained.label_cloud(cloud)
     on_gpu = copy.deepcopy(trained).to("cuda").label_cloud(cloud)
     assert np.mean(on_cpu == on_gpu) > 0.97
+
+
+def test_passes_held_one_at_a_time_leave_the_labels_and_overlap_the_host_work(
+    trained: Any, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The GPU's policy, run on the CPU: tiles prepared on threads, one pass at a time."""
+    import threading
+
+    cloud = make_scene(2)
+    first = trained.label_cloud(cloud)
+    model = _with_prediction(trained, parallel_tiles=3)
+    lock = threading.Lock()
+    inside, most, passes = [0], [0], [0]
+    counting = threading.Lock()
+    plain = type(trained)._classify
+
+    def counted(self: Any, *args: Any) -> Any:
+        with counting:
+            inside[0] += 1
+            passes[0] += 1
+            most[0] = max(most[0], inside[0])
+        try:
+            return plain(self, *args)
+        finally:
+            with counting:
+                inside[0] -= 1
+
+    monkeypatch.setattr(type(trained), "_classify", counted)
+    monkeypatch.setattr(model, "_one_pass_at_a_time", lambda: lock)
+    assert np.array_equal(first, model.label_cloud(cloud, workdir=tmp_path))
+    assert passes[0] >= 9 and most[0] == 1
+
+
+@pytest.mark.gpu
+def test_cuda_tiles_prepared_side_by_side_get_the_labels_of_one_at_a_time(
+    trained: Any,
+) -> None:
+    import copy
+
+    import torch
+
+    if not torch.cuda.is_available():
+        pytest.skip("no CUDA device")
+    cloud = make_scene(2)
+    on_gpu = copy.deepcopy(trained).to("cuda")
+    serial = _with_prediction(on_gpu, parallel_tiles=1).label_cloud(cloud)
+    assert np.array_equal(serial, _with_prediction(on_gpu, parallel_tiles=4).label_cloud(cloud))

@@ -284,8 +284,9 @@ class PredictionConfig:
         chunk_size: points per chunk read from the scan.
         seed: seed of the random sampling inside the network (the labels are a function
             of the scan, the model and this seed).
-        parallel_tiles: tiles labelled at a time on the CPU, each on one thread (0: one per
-            CPU thread, see ``baselines.common.device.cpu_threads``); on a GPU, one.
+        parallel_tiles: tiles labelled at a time (0: one per CPU thread, see
+            ``baselines.common.device.cpu_threads``): on the CPU each on one thread; on a
+            GPU their host work side by side, their network passes one at a time.
         half: on a GPU, run the network under bfloat16 autocast.
         compile: on a GPU, compile the network with ``torch.compile``.
     """

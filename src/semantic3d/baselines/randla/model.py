@@ -18,13 +18,17 @@ this process or on a Dask worker (:mod:`semantic3d.scale.predict_tiles` calls th
 
 On a GPU the neighbour searches run in torch on the device and the network under
 bfloat16 autocast (``[prediction] half``), compiled with ``torch.compile`` when
-``[prediction] compile`` is set.
+``[prediction] compile`` is set. Tiles are then prepared on ``[prediction]
+parallel_tiles`` host threads (reading, voxels, pieces, the points' labels) while the
+device runs one pass at a time: a tile's host work costs more than its pass.
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import tempfile
+import threading
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
@@ -121,15 +125,24 @@ class RandlaModel:
         self.device = torch.device("cpu")
         self._values = np.asarray(self.label_values, np.uint8)
         self._forward: Any = self.network
+        self._device_lock = threading.Lock()
 
     def __getstate__(self) -> dict[str, Any]:
         state = dict(self.__dict__)
         state["_forward"] = None  # a compiled network does not pickle; rebuilt on load
+        del state["_device_lock"]
         return state
 
     def __setstate__(self, state: dict[str, Any]) -> None:
         self.__dict__.update(state)
         self._forward = self.network
+        self._device_lock = threading.Lock()
+
+    def _one_pass_at_a_time(self) -> contextlib.AbstractContextManager[Any]:
+        """Held around a pass: on a GPU the passes of tiles prepared side by side run one
+        after another (one pass's memory on the device); on the CPU they run side by side,
+        one torch thread each."""
+        return self._device_lock if self.device.type != "cpu" else contextlib.nullcontext()
 
     @property
     def training_scans(self) -> tuple[str, ...]:
@@ -222,6 +235,12 @@ class RandlaModel:
         """Class indices (into :attr:`label_values`) of a sub-cloud's points, in the given
         (random) order: ``xyz`` local coordinates, ``features`` the network's inputs."""
         network = self.config.network
+        with self._one_pass_at_a_time():
+            return self._classify(xyz, features, network)
+
+    def _classify(
+        self, xyz: NDArray[np.float32], features: NDArray[np.float32], network: Any
+    ) -> NDArray[np.int64]:
         levels = build_levels(
             xyz, k=network.k_neighbours, ratios=network.ratios, device=self.device
         )
@@ -242,16 +261,18 @@ class RandlaModel:
     ) -> Iterator[LabelledBlock]:
         """Label a streamed scan tile by tile (the ``Predictor`` protocol).
 
-        On the CPU, ``[prediction] parallel_tiles`` tiles are labelled at a time, each on
-        one torch thread: a pass over a block is many small operations, which threads of
-        one operation share badly (on two busy cores, 2 threads per operation ran 4-10x
-        slower than 1), while whole tiles side by side keep every core busy.
+        ``[prediction] parallel_tiles`` tiles are labelled at a time. On the CPU each runs
+        on one torch thread: a pass over a block is many small operations, which threads
+        of one operation share badly (on two busy cores, 2 threads per operation ran 4-10x
+        slower than 1), while whole tiles side by side keep every core busy. On a GPU the
+        tiles' host work runs side by side and their passes one at a time.
         """
-        parallel = 1
-        if self.device.type == "cpu":
-            parallel = self.config.prediction.parallel_tiles or cpu_threads()
+        parallel = self.config.prediction.parallel_tiles or cpu_threads()
         if parallel <= 1:
             yield from iter_tiled_blocks(self, chunks, workdir=workdir)
+            return
+        if self.device.type != "cpu":
+            yield from iter_tiled_blocks(self, chunks, workdir=workdir, parallel_tiles=parallel)
             return
         threads = torch.get_num_threads()
         torch.set_num_threads(1)
