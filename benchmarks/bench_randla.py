@@ -9,7 +9,8 @@ Sections (``--sections``, comma separated; default all):
   seed ``s`` and labels every point of the 2 held-out scans; the covariance baseline (the
   library default, sampling seed ``s``) is trained and scored on the same folds. Per seed
   the confusion matrices of the folds run are pooled; the table gives mean ± std over
-  seeds. ``--folds`` and ``--seeds`` run a part (say which in the report); results are
+  seeds; RandLA-Net is scored twice, with one pass per block and with ``VOTES`` passes
+  averaged (``[prediction] votes``). ``--folds`` and ``--seeds`` run a part (say which in the report); results are
   written after every fold, and a rerun skips the (seed, fold) pairs already in the file.
 - ``sim``: train on one simulated terrestrial scan (``semantic3d simulate``), label
   another scene; both baselines.
@@ -21,7 +22,8 @@ Sections (``--sections``, comma separated; default all):
   size: flat in scan size when memory is bounded by a tile.
 
 Nothing is tuned on a fold's test scans: the configuration is the ``cpu`` preset as
-shipped. Usage: ``python benchmarks/bench_randla.py --sections cv --seeds 0 --jobs 2``;
+shipped, or with ``--config FILE.toml`` a candidate (``benchmarks/randla_candidates/``),
+whose folds are the same and whose results go to ``bench_randla_cv_<FILE>.json``. Usage: ``python benchmarks/bench_randla.py --sections cv --seeds 0 --jobs 2``;
 ``--quick`` runs a small version of every section.
 """
 
@@ -49,6 +51,7 @@ ROOT = Path(__file__).resolve().parents[1]
 OAKLAND = ROOT.parent / "shared" / "data" / "oakland"
 OUT = ROOT / "benchmarks" / "out"
 N_FOLDS = 5
+VOTES = 4  # cv: RandLA-Net is also scored with this many passes averaged
 
 
 def _load() -> float:
@@ -76,9 +79,9 @@ def _label_scan(predictor: Any, scan: Any, workdir: Path) -> tuple[np.ndarray, i
     return matrix.compute(), truth.size
 
 
-def run_fold(task: tuple[int, int, int | None, str, str]) -> dict[str, Any]:
+def run_fold(task: tuple[int, int, int | None, str, str, str | None]) -> dict[str, Any]:
     """Train both baselines on one fold's training scans, score its held-out scans."""
-    seed, fold, batches, workdir, data = task
+    seed, fold, batches, workdir, data, config_path = task
     import dataclasses
 
     import torch
@@ -86,7 +89,7 @@ def run_fold(task: tuple[int, int, int | None, str, str]) -> dict[str, Any]:
     from semantic3d.baselines.common.scans import find_labelled_scans
     from semantic3d.baselines.covariance.config import CovarianceConfig
     from semantic3d.baselines.covariance.training import train_covariance_model
-    from semantic3d.baselines.randla.config import preset_config
+    from semantic3d.baselines.randla.config import load_config, preset_config
     from semantic3d.baselines.randla.training import train_randla_model
 
     torch.set_num_threads(1)
@@ -94,12 +97,14 @@ def run_fold(task: tuple[int, int, int | None, str, str]) -> dict[str, Any]:
     held_out = fold_scans(seed, [s.name for s in scans])[fold]
     train = [s for s in scans if s.name not in held_out]
     test = [s for s in scans if s.name in held_out]
-    config = preset_config("cpu")
+    config = preset_config("cpu") if config_path is None else load_config(config_path)
     changes: dict[str, Any] = {"seed": seed}
     if batches is not None:
         changes["n_batches"] = batches
     config = dataclasses.replace(config, training=dataclasses.replace(config.training, **changes))
     result: dict[str, Any] = {"seed": seed, "fold": fold, "test_scans": held_out}
+    if config_path is not None:
+        result["config"] = Path(config_path).read_text()
     started, cpu = time.perf_counter(), time.process_time()
     model = train_randla_model(train, config=config, workdir=workdir)
     result["randla_train_s"] = time.perf_counter() - started
@@ -109,6 +114,13 @@ def run_fold(task: tuple[int, int, int | None, str, str]) -> dict[str, Any]:
     result["randla_predict_cpu_s"] = time.process_time() - cpu
     result["randla_confusion"] = sum(m for m, _ in matrices).tolist()
     result["n_points"] = sum(n for _, n in matrices)
+    # the same model, its probabilities averaged over VOTES turned and resampled passes
+    cpu = time.process_time()
+    model.configure_prediction(votes=VOTES)
+    result[f"randla_votes{VOTES}_confusion"] = sum(
+        _label_scan(model, scan, Path(workdir))[0] for scan in test
+    ).tolist()
+    result[f"randla_votes{VOTES}_predict_cpu_s"] = time.process_time() - cpu
     covariance = CovarianceConfig()
     covariance = dataclasses.replace(
         covariance, sampling=dataclasses.replace(covariance.sampling, seed=seed)
@@ -124,7 +136,13 @@ def run_fold(task: tuple[int, int, int | None, str, str]) -> dict[str, Any]:
 
 
 def cross_validate(
-    seeds: list[int], folds: list[int], batches: int | None, jobs: int, out: Path, data: Path
+    seeds: list[int],
+    folds: list[int],
+    batches: int | None,
+    jobs: int,
+    out: Path,
+    data: Path,
+    config: Path | None = None,
 ) -> dict[str, Any]:
     """Run the missing (seed, fold) pairs, save each as it ends; summarise."""
     import multiprocessing
@@ -133,7 +151,10 @@ def cross_validate(
     have = {(r["seed"], r["fold"]) for r in done}
     workdir = tempfile.mkdtemp(prefix="bench-randla-")
     tasks = [
-        (s, f, batches, workdir, str(data)) for s in seeds for f in folds if (s, f) not in have
+        (s, f, batches, workdir, str(data), None if config is None else str(config))
+        for s in seeds
+        for f in folds
+        if (s, f) not in have
     ]
     print(f"cv: {len(tasks)} fold runs to do ({len(have)} in {out}), load {_load():.1f}")
     env = {"OMP_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
@@ -141,6 +162,8 @@ def cross_validate(
     context = multiprocessing.get_context("spawn")
     with context.Pool(max(1, jobs)) as pool:
         for result in pool.imap_unordered(run_fold, tasks):
+            # another run may have written folds to the same file meanwhile: keep them
+            done = _merged(json.loads(out.read_text())["runs"] if out.is_file() else [], done)
             done.append(result)
             _write(out, {"runs": done, "summary": summarise(done)})
             print(
@@ -155,6 +178,12 @@ def cross_validate(
     return summary
 
 
+def _merged(stored: list[dict[str, Any]], ours: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The runs of both lists, one per (seed, fold), ours first."""
+    keys = {(r["seed"], r["fold"]) for r in ours}
+    return ours + [r for r in stored if (r["seed"], r["fold"]) not in keys]
+
+
 def _scores(confusion: Any) -> Any:
     from semantic3d.metrics.scores import compute_scores
 
@@ -166,7 +195,10 @@ def summarise(runs: list[dict[str, Any]]) -> dict[str, Any]:
     from semantic3d.core import CLASSES
 
     summary: dict[str, Any] = {}
-    for method in ("randla", "covariance"):
+    methods = ["randla", "covariance"]
+    if runs and all(f"randla_votes{VOTES}_confusion" in r for r in runs):
+        methods.append(f"randla_votes{VOTES}")
+    for method in methods:
         per_seed: dict[int, Any] = {}
         folds: dict[int, list[int]] = {}
         for run in runs:
@@ -558,6 +590,13 @@ def main() -> None:
     parser.add_argument("--folds", default="0,1,2,3,4")
     parser.add_argument("--batches", type=int, default=None, help="override n_batches")
     parser.add_argument(
+        "--config",
+        type=Path,
+        default=None,
+        help="cv: a candidate configuration (TOML) in place of the cpu preset; results in "
+        "bench_randla_cv_<its name>.json",
+    )
+    parser.add_argument(
         "--jobs",
         type=int,
         default=2,
@@ -583,6 +622,8 @@ def main() -> None:
         sections.remove("cv")
     if "cv" in sections:
         name = "bench_randla_cv_quick.json" if args.quick else "bench_randla_cv.json"
+        if args.config is not None:
+            name = name.replace(".json", f"_{args.config.stem}.json")
         summary = cross_validate(
             [int(s) for s in args.seeds.split(",")],
             [int(f) for f in args.folds.split(",")],
@@ -590,8 +631,11 @@ def main() -> None:
             args.jobs,
             OUT / name,
             args.data,
+            args.config,
         )
-        for method in ("randla", "covariance"):
+        for method in [m for m in summary if m.startswith(("randla", "covariance"))]:
+            if not isinstance(summary[method], dict):
+                continue
             row = summary[method]
             print(
                 f"{method}: mIoU {row['miou_mean']:.3f} ± {row['miou_std']:.3f}, OA "

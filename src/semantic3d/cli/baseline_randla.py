@@ -168,6 +168,14 @@ def predict(
     threads: int | None = threads_option(),
     scheduler: str | None = scheduler_option(),
     workers: int | None = workers_option(),
+    votes: int | None = typer.Option(
+        None,
+        "--votes",
+        min=1,
+        max=64,
+        help="Network passes per block whose class probabilities are averaged, each in its "
+        "own random order and turned about z (default: the model's, 1); time grows with them.",
+    ),
 ) -> None:
     """Label scans with a trained model: one SCAN, or every scan of --data.
 
@@ -183,6 +191,8 @@ def predict(
         scans_to_label, target = scans_and_target(scan, data, out, challenge)
         refuse_existing_outputs(planned_outputs(target, scans_to_label), overwrite=overwrite)
         model = load_model(model_path, device=device.value)
+        if votes is not None:
+            model.configure_prediction(votes=votes)
         use_cpu_threads()
         label_scans(
             model,

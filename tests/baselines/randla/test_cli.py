@@ -46,6 +46,11 @@ def test_train_predict_and_cross_validate(randla_scans: Path, tmp_path: Path) ->
     assert set(labels.tolist()) <= {1, 3, 5, 8} and (out / "test.labels.json").is_file()
     refused = runner.invoke(app, [*predict, "--out", str(out)])
     assert refused.exit_code == 2 and "already exists" in refused.output
+    voted = runner.invoke(app, [*predict, "--out", str(tmp_path / "voted"), "--votes", "2"])
+    assert voted.exit_code == 0, voted.output
+    assert read_labels(tmp_path / "voted" / "test.labels").size == labels.size
+    no_votes = runner.invoke(app, [*predict, "--out", str(tmp_path / "v0"), "--votes", "0"])
+    assert no_votes.exit_code == 2 and not (tmp_path / "v0").exists()
     no_gpu = runner.invoke(app, [*predict, "--out", str(tmp_path / "x"), "--device", "cuda"])
     assert no_gpu.exit_code in (0, 2)  # 0 only where a GPU exists
     if no_gpu.exit_code == 2:

@@ -12,8 +12,10 @@ import pytest
 
 from semantic3d.baselines.common.device import DeviceError, resolve_device
 from semantic3d.baselines.common.prediction import ScanInputError, predict_scan
-from semantic3d.baselines.randla.blocks import split_tile, voxelise
+from semantic3d.baselines.randla.blocks import split_tile, turned_about_z, voxelise
+from semantic3d.baselines.randla.config import PredictionConfig
 from semantic3d.core import PointCloud
+from semantic3d.core.errors import ConfigError
 from semantic3d.io.ascii import write_ascii_points
 from semantic3d.io.labels import read_labels
 from tests.baselines.conftest import write_scan
@@ -158,20 +160,20 @@ def test_passes_held_one_at_a_time_leave_the_labels_and_overlap_the_host_work(
     lock = threading.Lock()
     inside, most, passes = [0], [0], [0]
     counting = threading.Lock()
-    plain = type(trained)._classify
+    network = model._forward
 
-    def counted(self: Any, *args: Any) -> Any:
+    def counted(*args: Any) -> Any:  # the network's pass, inside the pass's lock
         with counting:
             inside[0] += 1
             passes[0] += 1
             most[0] = max(most[0], inside[0])
         try:
-            return plain(self, *args)
+            return network(*args)
         finally:
             with counting:
                 inside[0] -= 1
 
-    monkeypatch.setattr(type(trained), "_classify", counted)
+    monkeypatch.setattr(model, "_forward", counted)
     monkeypatch.setattr(model, "_one_pass_at_a_time", lambda: lock)
     assert np.array_equal(first, model.label_cloud(cloud, workdir=tmp_path))
     assert passes[0] >= 9 and most[0] == 1
@@ -191,3 +193,47 @@ def test_cuda_tiles_prepared_side_by_side_get_the_labels_of_one_at_a_time(
     on_gpu = copy.deepcopy(trained).to("cuda")
     serial = _with_prediction(on_gpu, parallel_tiles=1).label_cloud(cloud)
     assert np.array_equal(serial, _with_prediction(on_gpu, parallel_tiles=4).label_cloud(cloud))
+
+
+def test_votes_average_turned_resampled_passes_deterministically(
+    trained: Any, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    cloud = make_scene(2)
+    single = trained.label_cloud(cloud)
+    seen: list[tuple[float, float]] = []
+    plain = type(trained)._pass
+
+    def noted(self: Any, xyz: Any, features: Any, **options: Any) -> Any:
+        assert np.array_equal(xyz, features[:, :3])  # the inputs turn with the points
+        seen.append((float(xyz[0, 0]), float(np.hypot(xyz[:, 0], xyz[:, 1]).max())))
+        return plain(self, xyz, features, **options)
+
+    monkeypatch.setattr(type(trained), "_pass", noted)
+    voted = _with_prediction(trained, votes=3, parallel_tiles=1)  # passes in block order
+    first = voted.label_cloud(cloud, workdir=tmp_path)
+    n_passes = len(seen)
+    assert n_passes >= 27  # 3 passes for each of the >= 9 tiles
+    assert np.array_equal(first, voted.label_cloud(cloud, workdir=tmp_path))
+    assert set(np.unique(first).tolist()) <= set(trained.label_values)
+    # the passes over one block differ in order and turn, never in the block's extent
+    radii = [r for _, r in seen[:3]]
+    assert len({x for x, _ in seen[:3]}) == 3 and np.ptp(radii) < 1e-4 * max(radii)
+    truth = np.asarray(cloud.labels)
+    assert np.mean(first == single) > 0.8
+    assert np.mean(first == truth) >= np.mean(single == truth) - 0.05
+
+
+def test_a_quarter_turn_about_z_keeps_heights_and_distances() -> None:
+    rng = np.random.default_rng(3)
+    xyz = rng.normal(size=(50, 3)).astype(np.float32)
+    quarter = turned_about_z(xyz, 0.25)
+    assert np.allclose(quarter[:, 0], -xyz[:, 1], atol=1e-6)
+    assert np.allclose(quarter[:, 1], xyz[:, 0], atol=1e-6)
+    assert np.array_equal(quarter[:, 2], xyz[:, 2])
+    assert turned_about_z(xyz, 0.0) is xyz
+
+
+@pytest.mark.parametrize("votes", [0, 65, 1.5])
+def test_votes_out_of_range_are_refused(votes: Any) -> None:
+    with pytest.raises(ConfigError, match=r"votes: expected an integer from 1 to 64, found"):
+        PredictionConfig(votes=votes)

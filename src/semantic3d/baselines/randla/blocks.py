@@ -33,6 +33,7 @@ __all__ = [
     "local_coordinates",
     "point_inputs",
     "split_tile",
+    "turned_about_z",
     "voxelise",
     "window",
 ]
@@ -213,3 +214,19 @@ def local_coordinates(
         return np.empty((0, 3), np.float32)
     origin = np.array([centre_xy[0], centre_xy[1], float(np.median(xyz[:, 2]))])
     return np.ascontiguousarray(xyz - origin, dtype=np.float32)
+
+
+def turned_about_z(xyz: NDArray[np.float32], turns: float) -> NDArray[np.float32]:
+    """``xyz`` (local coordinates) turned by ``turns`` of a full turn about the z axis.
+
+    >>> turned_about_z(np.array([[1.0, 0.0, 2.0]], np.float32), 0.25).round(6).tolist()
+    [[0.0, 1.0, 2.0]]
+    """
+    if turns == 0:
+        return xyz
+    angle = 2.0 * np.pi * turns
+    cos, sin = np.cos(angle), np.sin(angle)
+    out = xyz.copy()
+    out[:, 0] = cos * xyz[:, 0] - sin * xyz[:, 1]
+    out[:, 1] = sin * xyz[:, 0] + cos * xyz[:, 1]
+    return out

@@ -289,6 +289,9 @@ class PredictionConfig:
             GPU their host work side by side, their network passes one at a time.
         half: on a GPU, run the network under bfloat16 autocast.
         compile: on a GPU, compile the network with ``torch.compile``.
+        votes: network passes per block whose class probabilities are averaged; pass
+            ``v`` draws its own random order and turns the block by ``v / votes`` of a
+            turn about z (1: one pass, its classes; the time grows with the votes).
     """
 
     chunk_size: int = 1 << 20
@@ -296,9 +299,12 @@ class PredictionConfig:
     parallel_tiles: int = 0
     half: bool = True
     compile: bool = False
+    votes: int = 1
 
     def __post_init__(self) -> None:
         _check_positive("chunk_size", self.chunk_size)
+        if not _is_integer(self.votes) or not 1 <= self.votes <= 64:
+            raise ConfigError(f"votes: expected an integer from 1 to 64, found {self.votes!r}")
         if not _is_integer(self.parallel_tiles) or self.parallel_tiles < 0:
             raise ConfigError(
                 f"parallel_tiles: expected an integer >= 0, found {self.parallel_tiles!r}"

@@ -26,6 +26,7 @@ device runs one pass at a time: a tile's host work costs more than its pass.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import tempfile
 import threading
@@ -44,6 +45,7 @@ from semantic3d.baselines.randla.blocks import (
     VoxelCloud,
     local_coordinates,
     split_tile,
+    turned_about_z,
 )
 from semantic3d.baselines.randla.config import RandlaConfig
 from semantic3d.baselines.randla.levels import build_levels, stack_levels
@@ -163,6 +165,13 @@ class RandlaModel:
             self._forward = torch.compile(self.network, dynamic=True)
         return self
 
+    def configure_prediction(self, **changes: Any) -> RandlaModel:
+        """Change ``[prediction]`` settings (``votes``, ``seed``, ``parallel_tiles``...);
+        returns self. Raises :class:`~semantic3d.core.errors.ConfigError` on a bad value."""
+        prediction = dataclasses.replace(self.config.prediction, **changes)
+        self.config = dataclasses.replace(self.config, prediction=prediction)
+        return self
+
     # -- the TiledModel protocol -----------------------------------------------------------
     def tile_grid(self, first_point: NDArray[np.float64]) -> TileGrid:
         """The tiles of a scan whose first point is ``first_point`` (see :func:`scan_grid`)."""
@@ -217,44 +226,66 @@ class RandlaModel:
         )
 
     def _label_piece(self, voxels: VoxelCloud, piece: Piece, tile: TileKey) -> NDArray[np.uint8]:
-        """Label values of ``piece.labelled`` from one network pass over ``piece.block``."""
-        rng = np.random.default_rng(piece_seed(self.config.prediction.seed, tile, piece.number))
-        order = rng.permutation(piece.block.size)
-        ids = piece.block[order]
-        xyz = local_coordinates(voxels.xyz[ids], piece.centre_xy)
-        features = np.concatenate([xyz, voxels.inputs[ids]], axis=1)
-        classes = self.classify(xyz, features)
-        # where each labelled voxel sits in the permuted block
-        position = np.empty(piece.block.size, np.int64)
-        position[order] = np.arange(piece.block.size)
-        return self._values[classes[position[np.searchsorted(piece.block, piece.labelled)]]]
+        """Label values of ``piece.labelled`` from ``[prediction] votes`` network passes over
+        ``piece.block`` (one: its classes; more: their class probabilities averaged)."""
+        prediction = self.config.prediction
+        xyz = local_coordinates(voxels.xyz[piece.block], piece.centre_xy)  # block order
+        inputs = voxels.inputs[piece.block]
+        seed = piece_seed(prediction.seed, tile, piece.number)
+        if prediction.votes == 1:
+            order = np.random.default_rng(seed).permutation(piece.block.size)
+            ordered = xyz[order]
+            classes = np.empty(piece.block.size, np.int64)
+            classes[order] = self.classify(ordered, np.concatenate([ordered, inputs[order]], 1))
+        else:
+            total = np.zeros((piece.block.size, len(self.label_values)), np.float32)
+            for vote in range(prediction.votes):
+                # pass v: its own random order, the block turned by v / votes of a turn
+                order = np.random.default_rng([*seed, vote] if vote else seed).permutation(
+                    piece.block.size
+                )
+                ordered = turned_about_z(xyz[order], vote / prediction.votes)
+                features = np.concatenate([ordered, inputs[order]], axis=1)
+                total[order] += self.class_probabilities(ordered, features)
+            classes = np.argmax(total, axis=1)
+        return self._values[classes[np.searchsorted(piece.block, piece.labelled)]]
 
     def classify(
         self, xyz: NDArray[np.float32], features: NDArray[np.float32]
     ) -> NDArray[np.int64]:
         """Class indices (into :attr:`label_values`) of a sub-cloud's points, in the given
         (random) order: ``xyz`` local coordinates, ``features`` the network's inputs."""
+        result: NDArray[np.int64] = self._pass(xyz, features, probabilities=False)
+        return result
+
+    def class_probabilities(
+        self, xyz: NDArray[np.float32], features: NDArray[np.float32]
+    ) -> NDArray[np.float32]:
+        """``(points, classes)`` softmax of a sub-cloud's points, as :meth:`classify`."""
+        result: NDArray[np.float32] = self._pass(xyz, features, probabilities=True)
+        return result
+
+    def _pass(
+        self, xyz: NDArray[np.float32], features: NDArray[np.float32], *, probabilities: bool
+    ) -> NDArray[Any]:
+        """One network pass: class indices, or class probabilities."""
         network = self.config.network
         with self._one_pass_at_a_time():
-            return self._classify(xyz, features, network)
-
-    def _classify(
-        self, xyz: NDArray[np.float32], features: NDArray[np.float32], network: Any
-    ) -> NDArray[np.int64]:
-        levels = build_levels(
-            xyz, k=network.k_neighbours, ratios=network.ratios, device=self.device
-        )
-        batch = stack_levels([xyz], [levels], device=self.device)
-        inputs = torch.from_numpy(np.ascontiguousarray(features, np.float32)).to(self.device)
-        with torch.inference_mode():
-            if self.device.type == "cuda" and self.config.prediction.half:
-                with torch.autocast("cuda", dtype=torch.bfloat16):
-                    logits = self._forward(inputs, batch)
-            else:
-                logits = self._forward(inputs, batch)
-            classes = torch.argmax(logits.float(), dim=1)
-        result: NDArray[np.int64] = classes.cpu().numpy().astype(np.int64)
-        return result
+            levels = build_levels(
+                xyz, k=network.k_neighbours, ratios=network.ratios, device=self.device
+            )
+            batch = stack_levels([xyz], [levels], device=self.device)
+            inputs = torch.from_numpy(np.ascontiguousarray(features, np.float32))
+            with torch.inference_mode():
+                if self.device.type == "cuda" and self.config.prediction.half:
+                    with torch.autocast("cuda", dtype=torch.bfloat16):
+                        logits = self._forward(inputs.to(self.device), batch)
+                else:
+                    logits = self._forward(inputs.to(self.device), batch)
+                if probabilities:
+                    return np.asarray(torch.softmax(logits.float(), dim=1).cpu().numpy())
+                classes = torch.argmax(logits.float(), dim=1)
+            return np.asarray(classes.cpu().numpy().astype(np.int64))
 
     def iter_labelled_blocks(
         self, chunks: Iterable[PointCloud], *, workdir: Path
