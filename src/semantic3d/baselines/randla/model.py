@@ -20,7 +20,7 @@ On a GPU the neighbour searches run in torch on the device and the network under
 bfloat16 autocast (``[prediction] half``), compiled with ``torch.compile`` when
 ``[prediction] compile`` is set. Tiles are then prepared on ``[prediction]
 parallel_tiles`` host threads (reading, voxels, pieces, the points' labels) while the
-device runs one pass at a time: a tile's host work costs more than its pass.
+device runs one pass at a time, so the host work of several tiles overlaps the passes.
 """
 
 from __future__ import annotations
