@@ -10,8 +10,10 @@ Sections (``--sections``, comma separated; default all):
   library default, sampling seed ``s``) is trained and scored on the same folds. Per seed
   the confusion matrices of the folds run are pooled; the table gives mean ± std over
   seeds; RandLA-Net is scored twice, with one pass per block and with ``VOTES`` passes
-  averaged (``[prediction] votes``). ``--folds`` and ``--seeds`` run a part (say which in the report); results are
-  written after every fold, and a rerun skips the (seed, fold) pairs already in the file.
+  averaged (``[prediction] votes``). ``--folds`` and ``--seeds`` run a part (say which in
+  the report); results are written after every fold (merged with the folds other
+  processes wrote to the same file meanwhile), and a rerun skips the (seed, fold) pairs
+  already in the file.
 - ``sim``: train on one simulated terrestrial scan (``semantic3d simulate``), label
   another scene; both baselines.
 - ``speed``: ``predict`` end to end (read, tile, voxels, network, ``.labels`` and run
@@ -23,8 +25,9 @@ Sections (``--sections``, comma separated; default all):
 
 Nothing is tuned on a fold's test scans: the configuration is the ``cpu`` preset as
 shipped, or with ``--config FILE.toml`` a candidate (``benchmarks/randla_candidates/``),
-whose folds are the same and whose results go to ``bench_randla_cv_<FILE>.json``. Usage: ``python benchmarks/bench_randla.py --sections cv --seeds 0 --jobs 2``;
-``--quick`` runs a small version of every section.
+whose folds are the same and whose results go to ``bench_randla_cv_<FILE>.json``.
+Usage: ``python benchmarks/bench_randla.py --sections cv --seeds 0 --jobs 2``; ``--quick``
+runs a small version of every section.
 """
 
 from __future__ import annotations
@@ -633,9 +636,7 @@ def main() -> None:
             args.data,
             args.config,
         )
-        for method in [m for m in summary if m.startswith(("randla", "covariance"))]:
-            if not isinstance(summary[method], dict):
-                continue
+        for method in [m for m in ("randla", "covariance", f"randla_votes{VOTES}") if m in summary]:
             row = summary[method]
             print(
                 f"{method}: mIoU {row['miou_mean']:.3f} ± {row['miou_std']:.3f}, OA "
