@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import multiprocessing
 import pickle
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -136,7 +137,10 @@ def test_a_store_and_its_jobs_travel_to_another_process(tmp_path: Path) -> None:
     jobs = store.jobs(halo_m=0.25)
     assert len(jobs) == len(store.tiles)
     assert all(len(pickle.dumps(job)) < 300 for job in jobs)
-    with ProcessPoolExecutor(max_workers=1) as pool:
+    # a fresh interpreter, as on a cluster's worker: a fork of this threaded process could
+    # stall on a lock that one of its other threads held at the fork
+    spawn = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(max_workers=1, mp_context=spawn) as pool:
         remote = list(pool.map(_core_and_halo_sizes, jobs[:4]))
     local = [_core_and_halo_sizes(job) for job in jobs[:4]]
     assert remote == local
