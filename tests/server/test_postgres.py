@@ -6,11 +6,13 @@ As root (CI), the cluster runs as the ``postgres`` system user, as PostgreSQL re
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
 import subprocess
 import tempfile
 import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -267,3 +269,69 @@ def test_login_throttling_on_postgresql(pg_harness: Harness) -> None:
         thread.join()
     assert outcomes.count("wrong") <= pg_harness.settings.login_max_failures
     assert len(outcomes) == 10
+
+
+def test_a_held_account_lock_answers_503_soon_on_postgresql(
+    tmp_path: Path, ground_truth_dir: Path, postgres_url: str
+) -> None:
+    """PostgreSQL waits for a lock for ever by default; the server's requests wait
+    ``postgres_lock_timeout_s``, then answer 503 and leave the database as it was."""
+    import psycopg
+
+    settings = make_settings(
+        tmp_path / "data", database_url=postgres_url, postgres_lock_timeout_s=0.3
+    )
+    harnesses = build_harness(settings, ground_truth_dir)
+    harness = next(harnesses)
+    try:
+        token = harness.user_token("grace")
+        headers = {"Authorization": f"Bearer {token}"}
+        body = {"challenge": "toy", "size_bytes": 100}
+        with psycopg.connect(postgres_url.replace("postgresql+psycopg", "postgresql")) as blocker:
+            blocker.execute("SET idle_in_transaction_session_timeout = '5s'")  # a bounded test
+            blocker.execute("SELECT id FROM users WHERE username = 'grace' FOR UPDATE")
+            started = time.perf_counter()
+            response = harness.client.post("/api/uploads", json=body, headers=headers)
+            elapsed = time.perf_counter() - started
+            me = harness.client.get("/api/me", headers=headers)
+            with contextlib.suppress(psycopg.OperationalError):  # ended by its own bound
+                blocker.rollback()
+        assert response.status_code == 503, response.text
+        assert response.headers["Retry-After"] == "5"
+        assert response.json()["error"] == "the database is busy; try again in a few seconds"
+        assert 0.25 < elapsed < 3
+        assert me.status_code == 200  # reading needs no lock
+        assert harness.client.get("/api/uploads", headers=headers).json()["uploads"] == []
+        assert harness.client.post("/api/uploads", json=body, headers=headers).status_code == 201
+    finally:
+        harnesses.close()
+
+
+def test_the_lock_bound_keeps_the_url_s_own_options_on_postgresql(
+    tmp_path: Path, postgres_url: str
+) -> None:
+    import psycopg
+    from sqlalchemy import text
+
+    from semantic3d.server.db import MIGRATION_LOCK_KEY, create_db_engine, run_migrations
+
+    url = f"{postgres_url}?options=-c%20statement_timeout%3D5000"
+    engine = create_db_engine(
+        make_settings(tmp_path / "data", database_url=url, postgres_lock_timeout_s=0.3)
+    )
+    dsn = postgres_url.replace("postgresql+psycopg", "postgresql")
+    try:
+        with psycopg.connect(dsn, autocommit=True) as other:  # another starter, migrating
+            other.execute(f"SELECT pg_advisory_lock({MIGRATION_LOCK_KEY})")
+            done = threading.Timer(1.0, other.execute, ["SELECT pg_advisory_unlock_all()"])
+            done.start()
+            started = time.perf_counter()
+            run_migrations(engine)  # waits its turn, past the requests' bound
+            waited = time.perf_counter() - started
+            done.join()
+        assert waited > 0.8
+        with engine.connect() as connection:
+            assert connection.execute(text("SHOW lock_timeout")).scalar() == "300ms"
+            assert connection.execute(text("SHOW statement_timeout")).scalar() == "5s"
+    finally:
+        engine.dispose()

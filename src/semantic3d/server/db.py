@@ -37,6 +37,8 @@ MIGRATIONS_DIR = Path(__file__).parent / "migrations"
 _IMMEDIATE = "semantic3d_immediate"
 # Alembic keeps its migration context in module globals: one migration per process at a time.
 _MIGRATION_LOCK = threading.Lock()
+MIGRATION_LOCK_KEY = 0x53336D69
+"""PostgreSQL's advisory lock key under which concurrent starters migrate one at a time."""
 
 
 def create_db_engine(settings: Settings) -> Engine:
@@ -54,8 +56,26 @@ def create_db_engine(settings: Settings) -> Engine:
         )
         _configure_sqlite(engine, busy_timeout_ms=int(timeout_s * 1000))
     else:
-        engine = create_engine(url, pool_size=10, max_overflow=20, pool_pre_ping=True)
+        engine = create_engine(
+            url,
+            connect_args=_postgres_options(url, lock_timeout_s=settings.postgres_lock_timeout_s),
+            pool_size=10,
+            max_overflow=20,
+            pool_pre_ping=True,
+        )
     return engine
+
+
+def _postgres_options(url: str, *, lock_timeout_s: float) -> dict[str, str]:
+    """libpq ``options`` bounding every statement's wait for a lock (PostgreSQL waits for
+    ever by default), after any options the URL carries; migrations lift the bound."""
+    if not url.startswith("postgresql"):
+        return {}
+    given = make_url(url).query.get("options", "")
+    if isinstance(given, tuple):
+        given = " ".join(given)
+    bound = f"-c lock_timeout={max(1, round(lock_timeout_s * 1000))}"
+    return {"options": f"{given} {bound}".strip()}
 
 
 def _create_private_file(database: str | None) -> None:
@@ -118,12 +138,14 @@ def write_transaction(factory: sessionmaker[Session]) -> Iterator[Session]:
 def database_error(exc: OperationalError) -> ServerError | OperationalError:
     """A locked or full database as the error to answer with (503, 507), else ``exc``.
 
-    SQLite answers "database is locked" once its busy timeout has passed and "database
-    or disk is full" when its disk is; both pass by themselves, so the client is told to
-    come back rather than shown an internal error.
+    SQLite answers "database is locked" once its busy timeout has passed, PostgreSQL
+    "lock timeout" (SQLSTATE 55P03) once its ``lock_timeout`` has, and SQLite "database or
+    disk is full" when its disk is; all pass by themselves, so the client is told to come
+    back rather than shown an internal error.
     """
     message = str(exc.orig if exc.orig is not None else exc).lower()
-    if "locked" in message or "busy" in message:
+    lock_not_available = getattr(exc.orig, "sqlstate", None) == "55P03"  # PostgreSQL
+    if "locked" in message or "busy" in message or lock_not_available:
         return ServiceUnavailableError(
             "the database is busy; try again in a few seconds", retry_after_s=5
         )

@@ -143,6 +143,11 @@ class Settings(BaseSettings):
     sqlite_busy_timeout_s: float = Field(
         default=60.0, gt=0, description="Wait for SQLite's write lock, then 503."
     )
+    postgres_lock_timeout_s: float = Field(
+        default=60.0,
+        gt=0,
+        description="Wait for a PostgreSQL lock (an account's row, a table), then 503.",
+    )
 
     leaderboard_cache_s: float = Field(default=2.0, ge=0)
 

@@ -5,10 +5,8 @@ from __future__ import annotations
 from alembic import context
 from sqlalchemy import text
 
+from semantic3d.server.db import MIGRATION_LOCK_KEY
 from semantic3d.server.models import Base
-
-# A fixed key for PostgreSQL's advisory lock: concurrent starters migrate one at a time.
-_MIGRATION_LOCK_KEY = 0x53336D69
 
 
 def _run() -> None:
@@ -23,7 +21,10 @@ def _run() -> None:
     )
     with context.begin_transaction():
         if connection.dialect.name == "postgresql":
-            connection.execute(text(f"SELECT pg_advisory_xact_lock({_MIGRATION_LOCK_KEY})"))
+            # a migration waits for the one before it and for running transactions, however
+            # long: the requests' lock bound does not apply here
+            connection.execute(text("SET LOCAL lock_timeout = 0"))
+            connection.execute(text(f"SELECT pg_advisory_xact_lock({MIGRATION_LOCK_KEY})"))
         context.run_migrations()
 
 
