@@ -1,5 +1,5 @@
-"""Reading gives the same arrays on any number of threads (segments and windows split
-differently), and ``.labels`` read from the memory map equal the checking parser's."""
+"""Reading gives the same arrays on any number of threads (segments, windows and pieces
+split differently), and large ``.labels`` read by the fast path equal the checking parser's."""
 
 from __future__ import annotations
 
@@ -74,3 +74,47 @@ def test_a_bad_line_late_in_a_large_file_is_named(tmp_path: Path) -> None:
         read_labels(path)
     with pytest.raises(DataFormatError, match="line 600001"):
         list(iter_labels(path))
+
+
+@pytest.mark.parametrize("n_threads", [1, 3])
+@pytest.mark.parametrize("where", ["first", "middle", "last", "nowhere"])
+def test_label_pieces_read_on_threads_equal_the_checking_parser(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, n_threads: int, where: str
+) -> None:
+    """Many pieces on several threads: the same labels, and a piece of another shape
+    anywhere hands the whole file to the checking parser (values, or the bad line)."""
+    from semantic3d.io import labels as labels_module
+
+    monkeypatch.setattr(labels_module, "_PIECE_LABELS", 40_009)
+    values = np.random.default_rng(5).integers(0, 9, 400_000).astype(np.uint8)
+    lines = [f"{v}\n".encode() for v in values.tolist()]
+    at = {"first": 3, "middle": 211_111, "last": 399_998, "nowhere": None}[where]
+    if at is not None:
+        lines[at] = b"17\n"  # a wider value: another shape, not an error
+        lines[at + 1] = b"\n"  # dropped to keep the size even; the checking parser refuses it
+    path = tmp_path / "pieces.labels"
+    path.write_bytes(b"".join(lines))
+    with thread_limit(n_threads):
+        if at is None:
+            assert np.array_equal(read_labels(path), values)
+            assert np.array_equal(read_labels(path), _general(path))
+        else:
+            with pytest.raises(DataFormatError, match=f"line {at + 2}"):
+                read_labels(path)
+
+
+def test_label_pieces_without_positioned_reads_take_turns_and_read_the_same(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Where the platform lacks ``os.preadv`` (Windows) the threads seek in turn."""
+    import os
+
+    from semantic3d.io import labels as labels_module
+
+    monkeypatch.setattr(labels_module, "_PIECE_LABELS", 30_011)
+    values = np.random.default_rng(6).integers(0, 9, 300_000).astype(np.uint8)
+    path = tmp_path / "turns.labels"
+    path.write_bytes(b"".join(f"{v}\n".encode() for v in values.tolist()))
+    monkeypatch.delattr(os, "preadv")
+    with thread_limit(3):
+        assert np.array_equal(read_labels(path), values)

@@ -25,7 +25,7 @@ import queue
 import sys
 import threading
 from collections import deque
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Generator, Iterable, Iterator
 from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
 from contextlib import contextmanager, suppress
 from typing import TypeVar
@@ -202,7 +202,7 @@ def map_in_threads(
     numba_threads_per_task: Callable[[T], int] | int = 1,
     max_pending: int | None = None,
     name: str = "semantic3d",
-) -> Iterator[R]:
+) -> Generator[R, None, None]:
     """``function(item)`` for every item on a pool of ``n_threads`` (default the budget).
 
     Results come in input order (``ordered``) or as tasks finish. At most ``max_pending``
