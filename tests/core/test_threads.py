@@ -173,7 +173,8 @@ def test_threads_computing_at_once_stay_within_the_cap(tmp_path: Path) -> None:
     (tmp_path / "config.toml").write_text(_CONFIG)
     commands = [
         ["simulate", "--scene", "street", "--points", "80000", "--out", "scans"],
-        ["simulate", "--scene", "village", "--points", "40000", "--out", "more"],
+        # two scans: a folder's scans are labelled side by side, within the cap too
+        ["simulate", "--scene", "village", "--stations", "2", "--points", "30000", "--out", "more"],
         ["baseline", "covariance", "train", "--data", "scans", "--out", "model.s3dm"],
         ["baseline", "covariance", "predict", "--model", "model.s3dm", "--data", "more"],
         ["evaluate", "--gt", "more", "--pred", "predictions"],

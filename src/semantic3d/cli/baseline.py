@@ -166,8 +166,9 @@ def predict(
         "--parallel-scans",
         min=1,
         help="Scans labelled at a time on threads of this process (same labels; memory of "
-        "that many scans). Default for a folder: one per 4 threads, at least 2; 1 on a Dask "
-        "cluster or where numba has no thread-safe threading layer (TBB or OpenMP).",
+        "that many scans; at most --threads). Default for a folder: one per 4 threads, at "
+        "least 2; 1 on a Dask cluster or where numba has no thread-safe threading layer "
+        "(TBB or OpenMP).",
     ),
     scheduler: str | None = scheduler_option(),
     workers: int | None = workers_option(),

@@ -189,8 +189,10 @@ def predict_scan(
 
 def scans_at_once(n_scans: int) -> int:
     """How many of ``n_scans`` scans to label at once by default: one per 4 threads of the
-    budget (each scan's tiles use its share), at least 2, at most ``n_scans``."""
-    return max(1, min(n_scans, max(2, thread_budget() // 4)))
+    budget (each scan's tiles use its share), at least 2, at most ``n_scans`` and never
+    more than the budget's threads (each scan computes on one at least)."""
+    budget = thread_budget()
+    return max(1, min(n_scans, budget, max(2, budget // 4)))
 
 
 def parallel_scans_limit(predictor: Predictor) -> int | None:
@@ -220,7 +222,8 @@ def predict_scans(
     complete: after an error or Ctrl-C a folder holds the scans finished so far and a
     zip does not exist.
 
-    ``parallel_scans`` > 1 labels that many scans at a time, each on its own thread, for a
+    ``parallel_scans`` > 1 labels that many scans at a time (at most the thread budget:
+    :func:`~semantic3d.core.threads.thread_budget`), each on its own thread, for a
     predictor whose work releases the GIL and is safe to run from several threads (the
     covariance baseline's compiled kernels): the serial parts of one scan then overlap the
     parallel parts of another. A predictor with a ``max_parallel_scans`` attribute caps it
@@ -243,6 +246,8 @@ def predict_scans(
     limit = parallel_scans_limit(predictor)
     if limit is not None:
         parallel_scans = min(parallel_scans, limit)
+    # each scan labelled at once computes on a thread at least: the budget caps them
+    parallel_scans = min(parallel_scans, thread_budget())
     started = time.perf_counter()
     out = Path(out)
     refuse_unsafe_outputs(out, scans, overwrite=overwrite)
