@@ -156,10 +156,6 @@ def test_info_on_a_real_sample(shared_data: Path) -> None:
     assert "870200.010" in result.stdout  # georeferenced bounds to the millimetre
 
 
-def _default_sigint() -> None:
-    signal.signal(signal.SIGINT, signal.SIG_DFL)
-
-
 def _interrupt_a_conversion(tmp_path: Path, n_points: int) -> tuple[int, bytes]:
     """Start ``semantic3d convert`` and send it SIGINT once the partial output has content."""
     source = tmp_path / "big.txt"
@@ -168,16 +164,20 @@ def _interrupt_a_conversion(tmp_path: Path, n_points: int) -> tuple[int, bytes]:
     )
     destination = tmp_path / "out.las"
     destination.write_bytes(b"the previous output")
-    entry = "from semantic3d.cli.app import main; main()"
+    # A process started with SIGINT ignored (a background job, setsid, some CI runners)
+    # passes that on, and Python then never raises KeyboardInterrupt: the command gets
+    # Python's own handler, as it would in a terminal. Set in the child itself, not by a
+    # preexec_fn (Python code between fork and exec in this threaded test process could
+    # wait for ever on a lock another thread held at the fork).
+    entry = (
+        "import signal; signal.signal(signal.SIGINT, signal.default_int_handler); "
+        "from semantic3d.cli.app import main; main()"
+    )
     command = [sys.executable, "-c", entry, "convert", str(source), str(destination)]
     process = subprocess.Popen(
         [*command, "--chunk-size", "2000", "--overwrite"],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
-        # A process started with SIGINT ignored (a background job, setsid, some CI runners)
-        # passes that on, and Python then never raises KeyboardInterrupt: the command gets
-        # the default disposition, as it would in a terminal.
-        preexec_fn=_default_sigint,
     )
     try:
         deadline = time.monotonic() + 60

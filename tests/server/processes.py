@@ -8,7 +8,7 @@ import socket
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 
 import httpx
@@ -41,16 +41,14 @@ def run_command(
     )
 
 
-def _soft_open_files(limit: int) -> Callable[[], None]:
-    """A child set-up that starts the process with a soft open-file limit of ``limit``."""
-
-    def lower() -> None:
-        import resource
-
-        hard = resource.getrlimit(resource.RLIMIT_NOFILE)[1]
-        resource.setrlimit(resource.RLIMIT_NOFILE, (limit, hard))
-
-    return lower
+def _with_soft_open_files(command: list[str], limit: int | None) -> list[str]:
+    """``command`` started with a soft open-file limit of ``limit`` (None: as it is), set by
+    a shell that then becomes the command. Not a ``preexec_fn``: Python code between fork
+    and exec in this threaded test process could wait for ever on a lock another thread
+    held at the fork."""
+    if limit is None:
+        return command
+    return ["/bin/sh", "-c", f'ulimit -Sn {int(limit)} && exec "$@"', "sh", *command]
 
 
 class ServerProcess:
@@ -67,12 +65,12 @@ class ServerProcess:
         self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"
         self._log = log.open("ab")
+        serve = [*COMMAND, "serve", "--host", "127.0.0.1", "--port", str(self.port), *args]
         self.process = subprocess.Popen(
-            [*COMMAND, "serve", "--host", "127.0.0.1", "--port", str(self.port), *args],
+            _with_soft_open_files(serve, soft_open_files),
             env=environment(data_dir, **env),
             stdout=self._log,
             stderr=subprocess.STDOUT,
-            preexec_fn=None if soft_open_files is None else _soft_open_files(soft_open_files),
         )
         self._wait_ready(log)
 
