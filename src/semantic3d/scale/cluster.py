@@ -122,18 +122,25 @@ class DaskCluster:
             if spec.scheduler is not None:
                 self.client: Client = Client(spec.scheduler, timeout=spec.timeout_s)
             else:
+                import dask
+
+                # set in each worker once it runs (never in this process)
                 env = {name: str(spec.threads_per_worker) for name in THREAD_VARIABLES}
-                if self._quiet:  # the workers' own log lines go to this terminal too
-                    env["DASK_LOGGING__DISTRIBUTED"] = "critical"
-                self._local = LocalCluster(
-                    n_workers=spec.n_workers,
-                    threads_per_worker=spec.threads_per_worker,
-                    processes=True,
-                    memory_limit=spec.memory_limit,
-                    host="127.0.0.1",
-                    dashboard_address=":0",
-                    env=env,
-                )
+                spawn = _spawn_environment(quiet=self._quiet)
+                saved = {name: os.environ.get(name) for name in [*spawn, "PYTHONHASHSEED"]}
+                try:
+                    with dask.config.set({"distributed.nanny.pre-spawn-environ": spawn}):
+                        self._local = LocalCluster(
+                            n_workers=spec.n_workers,
+                            threads_per_worker=spec.threads_per_worker,
+                            processes=True,
+                            memory_limit=spec.memory_limit,
+                            host="127.0.0.1",
+                            dashboard_address=":0",
+                            env=env,
+                        )
+                finally:
+                    _restore_variables(saved)
                 self.client = Client(self._local, timeout=spec.timeout_s)
         except OSError as exc:  # TimeoutError included
             self.close()
@@ -248,6 +255,38 @@ class DaskCluster:
 
 
 _DASK_LOGGERS = ("distributed", "tornado", "asyncio", "bokeh")
+
+
+def _spawn_environment(*, quiet: bool) -> dict[str, str | None]:
+    """Dask's ``distributed.nanny.pre-spawn-environ`` for the workers started here.
+
+    The nanny runs in this process and writes these variables into this process's own
+    environment before it starts each worker. Dask's defaults there include
+    ``OMP_NUM_THREADS=1``: left alone, it capped this process's thread budget at one (the
+    client then read and cut the scan into tiles on one thread). The thread variables are
+    therefore dropped here (None) and set in each worker after its start instead (the
+    cluster's ``env``); a quiet run adds Dask's log level, which a worker reads only as
+    it starts.
+    """
+    import dask
+
+    spawn: dict[str, str | None] = dict(
+        dask.config.get("distributed.nanny.pre-spawn-environ", default={}) or {}
+    )
+    for name in THREAD_VARIABLES:
+        spawn[name] = None
+    if quiet:  # the workers' own log lines (a heartbeat lost at shutdown) stay out
+        spawn["DASK_LOGGING__DISTRIBUTED"] = "critical"
+    return spawn
+
+
+def _restore_variables(saved: dict[str, str | None]) -> None:
+    """Put this process's environment variables back as they were (None: absent)."""
+    for name, value in saved.items():
+        if value is None:
+            os.environ.pop(name, None)
+        else:
+            os.environ[name] = value
 
 
 def _quiet_dask_logs(level: int) -> dict[str, int]:
