@@ -177,8 +177,9 @@ def lock_user(session: Session, user_id: int) -> User:
 def run_migrations(engine: Engine) -> None:
     """Upgrade the schema to the newest Alembic revision.
 
-    Safe to call from several processes at once: SQLite serialises them with
-    ``BEGIN IMMEDIATE``, PostgreSQL with an advisory lock (see ``migrations/env.py``).
+    Safe to call from several processes at once: the whole upgrade is one transaction,
+    which SQLite serialises with ``BEGIN IMMEDIATE`` and PostgreSQL with an advisory lock
+    (see ``migrations/env.py``); the next starter then finds the newest revision.
     """
     from alembic import command
     from alembic.config import Config
@@ -188,8 +189,12 @@ def run_migrations(engine: Engine) -> None:
     with _MIGRATION_LOCK, engine.connect() as connection:
         if engine.dialect.name == "sqlite":
             connection = connection.execution_options(**{_IMMEDIATE: True})
-        config.attributes["connection"] = connection
-        command.upgrade(config, "head")
+        # One transaction for every step: Alembic on SQLite would commit after each one,
+        # and a starter that had read the old revision could then repeat a step another
+        # had just applied. Here the second starter waits for the whole upgrade.
+        with connection.begin():
+            config.attributes["connection"] = connection
+            command.upgrade(config, "head")
     logger.info("database schema at the newest revision")
 
 
