@@ -125,12 +125,17 @@ def _pairs_file_size(path: Path) -> int | None:
     return int(size)
 
 
-def _read_fully(stream: io.RawIOBase, buffer: NDArray[np.uint8]) -> int:
-    """Fill ``buffer`` from ``stream`` (a raw file); the bytes read (fewer only at the end)."""
+def _read_fully(stream: io.RawIOBase, buffer: NDArray[np.uint8], offset: int | None = None) -> int:
+    """Fill ``buffer`` from ``stream`` (a raw file): from where it stands, or with
+    positioned reads from ``offset`` (the file position untouched, so threads can read one
+    file side by side); the bytes read (fewer only at the end)."""
     view = memoryview(buffer.data)
     done = 0
     while done < len(view):
-        read = stream.readinto(view[done:])
+        if offset is None:
+            read = stream.readinto(view[done:])
+        else:
+            read = os.preadv(stream.fileno(), [view[done:]], offset + done)
         if not read:
             break
         done += read
@@ -143,18 +148,11 @@ _SEEK_LOCK = threading.Lock()  # where os.preadv is missing (Windows), reads tak
 def _read_at(stream: io.RawIOBase, buffer: NDArray[np.uint8], offset: int) -> int:
     """Fill ``buffer`` from ``stream`` at ``offset``; the bytes read (fewer only at the end).
     Threads read side by side where the platform has positioned reads."""
-    if not hasattr(os, "preadv"):
-        with _SEEK_LOCK:
-            stream.seek(offset)
-            return _read_fully(stream, buffer)
-    view = memoryview(buffer.data)
-    done = 0
-    while done < len(view):
-        read = os.preadv(stream.fileno(), [view[done:]], offset + done)
-        if not read:
-            break
-        done += read
-    return done
+    if hasattr(os, "preadv"):
+        return _read_fully(stream, buffer, offset)
+    with _SEEK_LOCK:
+        stream.seek(offset)
+        return _read_fully(stream, buffer)
 
 
 def _read_single_digit(path: Path) -> NDArray[np.uint8] | None:
