@@ -79,13 +79,18 @@ def postgres_server() -> Iterator[str]:
 _counter = iter(range(1_000_000))
 
 
+def _libpq(url: str) -> str:
+    """The SQLAlchemy URL ``url`` as psycopg's own connection string."""
+    return url.replace("postgresql+psycopg", "postgresql")
+
+
 @pytest.fixture
 def postgres_url(postgres_server: str) -> str:
     """A fresh database on the cluster."""
     import psycopg
 
     name = f"test_{os.getpid()}_{next(_counter)}"
-    dsn = postgres_server.replace("postgresql+psycopg", "postgresql") + "/postgres"
+    dsn = _libpq(postgres_server) + "/postgres"
     with psycopg.connect(dsn, autocommit=True) as connection:
         connection.execute(f'CREATE DATABASE "{name}"')
     return f"{postgres_server}/{name}"
@@ -287,7 +292,7 @@ def test_a_held_account_lock_answers_503_soon_on_postgresql(
         token = harness.user_token("grace")
         headers = {"Authorization": f"Bearer {token}"}
         body = {"challenge": "toy", "size_bytes": 100}
-        with psycopg.connect(postgres_url.replace("postgresql+psycopg", "postgresql")) as blocker:
+        with psycopg.connect(_libpq(postgres_url)) as blocker:
             blocker.execute("SET idle_in_transaction_session_timeout = '5s'")  # a bounded test
             blocker.execute("SELECT id FROM users WHERE username = 'grace' FOR UPDATE")
             started = time.perf_counter()
@@ -319,9 +324,10 @@ def test_the_lock_bound_keeps_the_url_s_own_options_on_postgresql(
     engine = create_db_engine(
         make_settings(tmp_path / "data", database_url=url, postgres_lock_timeout_s=0.3)
     )
-    dsn = postgres_url.replace("postgresql+psycopg", "postgresql")
     try:
-        with psycopg.connect(dsn, autocommit=True) as other:  # another starter, migrating
+        with psycopg.connect(
+            _libpq(postgres_url), autocommit=True
+        ) as other:  # another starter, migrating
             other.execute(f"SELECT pg_advisory_lock({MIGRATION_LOCK_KEY})")
             done = threading.Timer(1.0, other.execute, ["SELECT pg_advisory_unlock_all()"])
             done.start()
