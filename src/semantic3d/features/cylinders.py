@@ -27,6 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from semantic3d.core.errors import ShapeError
+from semantic3d.features._row_kernels import take_rows
 from semantic3d.features.names import CYLINDER_FEATURES
 
 N_CYLINDER_COLUMNS = len(CYLINDER_FEATURES)
@@ -80,7 +81,14 @@ def compute_cylinder_features(
     # A C-contiguous destination only: another layout would be another compilation.
     block = out if out.flags.c_contiguous else np.empty(out.shape, np.float32)
     _cylinder_kernel(
-        points[order], sorted_codes[starts[:-1]], starts, queries, origin, cell, radius_m, block
+        take_rows(points, order),
+        sorted_codes[starts[:-1]],
+        starts,
+        queries,
+        origin,
+        cell,
+        radius_m,
+        block,
     )
     if block is not out:
         out[...] = block
@@ -93,9 +101,19 @@ _SHIFT = 31
 def _cell_codes(
     points: NDArray[np.float64], origin: NDArray[np.float64], cell: float
 ) -> NDArray[np.int64]:
-    ix = np.floor((points[:, 0] - origin[0]) / cell).astype(np.int64)
-    iy = np.floor((points[:, 1] - origin[1]) / cell).astype(np.int64)
-    return (ix << _SHIFT) | iy
+    return _cell_codes_kernel(points, origin, cell)
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _cell_codes_kernel(
+    points: NDArray[np.float64], origin: NDArray[np.float64], cell: float
+) -> NDArray[np.int64]:  # pragma: no cover - compiled
+    codes = np.empty(points.shape[0], np.int64)
+    for row in numba.prange(points.shape[0]):
+        ix = np.int64(math.floor((points[row, 0] - origin[0]) / cell))
+        iy = np.int64(math.floor((points[row, 1] - origin[1]) / cell))
+        codes[row] = (ix << _SHIFT) | iy
+    return codes
 
 
 # Hand-written: a fixed-radius 2D search that only needs min, max and count per query

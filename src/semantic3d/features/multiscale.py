@@ -12,12 +12,12 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from semantic3d.core.errors import ShapeError
 from semantic3d.core.pointcloud import PointCloud
+from semantic3d.features._row_kernels import copy_rows, scatter_rows
 from semantic3d.features.attributes import compute_attribute_features
 from semantic3d.features.config import FeatureConfig
 from semantic3d.features.covariance import (
@@ -135,7 +135,7 @@ def compute_level_features(
             raise ShapeError(
                 f"neighbours: expected {found.indices.shape}, found {neighbours.shape}"
             )
-        neighbours[...] = found.indices
+        copy_rows(found.indices, neighbours)
     column = N_COVARIANCE_COLUMNS + (N_HEIGHT_COLUMNS if config.spherical_height else 0)
     # The kernels always get C-contiguous arrays of one dtype: every other layout would be
     # another compilation (~10 s) on first use. A column slice goes through a block.
@@ -150,7 +150,7 @@ def compute_level_features(
     kernel = geometry_kernel if config.spherical_height else covariance_kernel
     kernel(index.xyz, indices, queries, block)
     if block is not target and block is not out:
-        _copy_rows(block, target)
+        copy_rows(block, target)
     reach = found.kth_distance
     if config.cylinders:
         radius_m = config.cylinder_radius_m(level)
@@ -158,7 +158,7 @@ def compute_level_features(
         cylinders = compute_cylinder_features(index.xyz, queries, radius_m=radius_m)
         if width != N_CYLINDER_COLUMNS:
             cylinders = np.ascontiguousarray(cylinders[:, _cylinder_columns(config)])
-        _copy_rows(cylinders, out[:, column : column + width])
+        copy_rows(cylinders, out[:, column : column + width])
         column += width
         reach = np.maximum(reach, radius_m)
     if config.colour or config.intensity:
@@ -250,16 +250,6 @@ def compute_multiscale_features(
     return FeatureTable(config.feature_names, values, point_row, neighbours)
 
 
-def rows_of_keys(keys: NDArray[np.int64], row_keys: NDArray[np.int64]) -> NDArray[np.int64]:
-    """The row of every key in ``keys`` (any shape): its position in the sorted unique
-    ``row_keys``, or -1 where it is not there."""
-    if row_keys.size == 0:
-        return np.full(keys.shape, -1, np.int64)
-    position = np.minimum(np.searchsorted(row_keys, keys), row_keys.size - 1)
-    rows: NDArray[np.int64] = np.where(row_keys[position] == keys, position, -1)
-    return rows
-
-
 def fill_level_columns(
     columns: NDArray[np.float32],
     voxel_of_row: NDArray[np.int64],
@@ -277,7 +267,7 @@ def fill_level_columns(
         return
     block = np.empty((needed.size, columns.shape[1]), np.float32)
     compute(needed, block)
-    _scatter_rows(block, inverse, columns)
+    scatter_rows(block, inverse, columns)
 
 
 def distinct_voxels(
@@ -292,24 +282,3 @@ def distinct_voxels(
     needed = np.flatnonzero(present)
     rank = np.cumsum(present, dtype=np.int64) - 1
     return needed.astype(np.int64, copy=False), rank[voxel_of_row]
-
-
-# Hand-written: ``columns[:] = block[inverse]`` makes an (n_rows, width) temporary and a
-# second strided pass per level; this writes each row once.
-@numba.njit(cache=True, nogil=True, parallel=True)
-def _scatter_rows(
-    block: NDArray[np.float32], inverse: NDArray[np.int64], out: NDArray[np.float32]
-) -> None:  # pragma: no cover - compiled
-    for row in numba.prange(inverse.size):
-        source = inverse[row]
-        for column in range(block.shape[1]):
-            out[row, column] = block[source, column]
-
-
-# Hand-written: ``out[...] = block`` runs on one thread, and the first copy into a fresh
-# table also faults in its pages there; on 16 cores that was a serial share of every tile.
-@numba.njit(cache=True, nogil=True, parallel=True)
-def _copy_rows(block: NDArray[np.float32], out: NDArray[np.float32]) -> None:  # pragma: no cover
-    for row in numba.prange(block.shape[0]):
-        for column in range(block.shape[1]):
-            out[row, column] = block[row, column]

@@ -26,6 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from semantic3d.core.errors import ShapeError
+from semantic3d.features._row_kernels import leading_columns
 from semantic3d.spatial.kdtree import KdTree
 
 
@@ -84,7 +85,7 @@ class LevelIndex:
         pending = np.flatnonzero(
             _canonicalise(squared, found, self.keys, k_eff, k_query < self.n_points)
         )
-        indices = found[:, :k_eff]
+        indices = found if k_query == k_eff else leading_columns(found, k_eff)
         kth = np.sqrt(squared[:, k_eff - 1].astype(np.float64))
         if pending.size:  # ties reaching past the returned neighbours: ask for more
             self._resolve_ties(

@@ -43,6 +43,15 @@ from numpy.typing import ArrayLike, NDArray
 from semantic3d.core.errors import ShapeError
 from semantic3d.core.pointcloud import PointCloud
 from semantic3d.core.threads import iter_ahead, map_in_threads, thread_budget
+from semantic3d.features._row_kernels import (
+    exact_rows,
+    put_rows,
+    put_values,
+    rows_in_box,
+    rows_of_keys,
+    store_keys,
+    take_rows,
+)
 from semantic3d.features.config import ConfigError, FeatureConfig
 from semantic3d.features.multiscale import (
     FeatureTable,
@@ -50,7 +59,6 @@ from semantic3d.features.multiscale import (
     compute_level_features,
     distinct_voxels,
     fill_level_columns,
-    rows_of_keys,
 )
 from semantic3d.features.neighbourhoods import LevelIndex
 from semantic3d.features.pyramid import VoxelPyramid, build_pyramid, grid_origin
@@ -459,7 +467,7 @@ class TiledScan:
         voxels, point_row = distinct_voxels(pyramid.point_voxel[local])
         values = np.empty((voxels.size, config.n_features), np.float32)
         # level 0 (one row per voxel, in row order) also gives every row its k-NN
-        neighbour_keys = np.full((voxels.size, config.k_neighbours), -1, np.int64)
+        neighbour_keys = np.empty((voxels.size, config.k_neighbours), np.int64)
         ancestor = voxels
         for number in range(config.n_levels):
             if number:
@@ -470,11 +478,15 @@ class TiledScan:
             ) -> None:
                 whole = self._whole_level(number)
                 if whole is None:
-                    out[:] = self._exact_level(
+                    level = pyramid.levels[number]
+                    self._exact_level(
                         tile,
                         number,
-                        pyramid.levels[number].xyz[needed],
+                        level.xyz
+                        if needed.size == level.n_voxels
+                        else take_rows(level.xyz, needed),
                         neighbour_keys if number == 0 else None,
+                        out=out,
                     )
                 else:
                     at = np.searchsorted(whole.keys, pyramid.levels[number].keys[needed])
@@ -482,6 +494,7 @@ class TiledScan:
                     if number == 0 and whole.neighbour_keys is not None:
                         found = whole.neighbour_keys[at]
                         neighbour_keys[:, : found.shape[1]] = found
+                        neighbour_keys[:, found.shape[1] :] = -1
 
             fill_level_columns(values[:, number * width : (number + 1) * width], ancestor, compute)
         neighbours = rows_of_keys(neighbour_keys, pyramid.levels[0].keys[voxels])
@@ -561,6 +574,8 @@ class TiledScan:
         number: int,
         queries: NDArray[np.float64],
         neighbour_keys: NDArray[np.int64] | None = None,
+        *,
+        out: NDArray[np.float32] | None = None,
     ) -> NDArray[np.float32]:
         """Level ``number`` features of ``queries`` (in ``tile``), widening the halo until exact.
 
@@ -569,11 +584,13 @@ class TiledScan:
         of that radius (the k-th distance within a subset bounds the true one), which is
         then exact; a subset with fewer than k points doubles the box. With
         ``neighbour_keys`` (``(m, k)``), also the keys of every query's exact neighbours.
+        The rows go to ``out`` (``(m, n_level_features)``, may be a column slice) when given.
         """
         config = self.config
         size = self.tile_size_m
-        out = np.empty((queries.shape[0], len(config.level_feature_names)), np.float32)
-        pending = np.arange(queries.shape[0])
+        if out is None:
+            out = np.empty((queries.shape[0], len(config.level_feature_names)), np.float32)
+        pending: NDArray[np.intp] | None = None  # None: every query (the first ask)
         halo = self._first_halo_m(number)
         box = np.array(
             [
@@ -583,7 +600,7 @@ class TiledScan:
                 (tile[1] + 1) * size + halo,
             ]
         )
-        while pending.size:
+        while pending is None or pending.size:
             box[[0, 2]] = np.maximum(box[[0, 2]], self._tile_low - 1.0)
             box[[1, 3]] = np.minimum(box[[1, 3]], self._tile_high + 1.0)
             infinite = np.array(
@@ -595,12 +612,14 @@ class TiledScan:
                 ]
             )
             xyz, keys, attributes = self._gather(number, box)
-            asked = queries[pending]
+            asked = queries if pending is None else queries[pending]
             found = (
-                np.empty((pending.size, min(config.k_neighbours, keys.size)), np.int64)
+                np.empty((asked.shape[0], min(config.k_neighbours, keys.size)), np.int64)
                 if neighbour_keys is not None
                 else None
             )
+            # the first ask writes every row in place; rows it cannot vouch for are
+            # written again by a later ask
             block, kth = compute_level_features(
                 LevelIndex(xyz, keys),
                 attributes,
@@ -608,28 +627,30 @@ class TiledScan:
                 config=config,
                 level=number,
                 neighbours=found,
+                out=out if pending is None else None,
             )
-            found_keys = None if found is None else keys[found]
             enough = xyz.shape[0] >= config.k_neighbours
             if infinite.all():
-                exact = np.ones(pending.size, bool)
+                exact = np.ones(asked.shape[0], bool)
             else:
-                edge = _distance_to_edge(asked, box, infinite)
-                exact = enough & (kth * (1.0 + 1e-6) + _SAFETY_M < edge)
-            out[pending[exact]] = block[exact]
-            if neighbour_keys is not None and found_keys is not None:
-                if found_keys.shape[1] == neighbour_keys.shape[1]:
-                    neighbour_keys[pending[exact]] = found_keys[exact]
-                else:  # fewer level points than k in the whole scan: the rest stay absent
-                    neighbour_keys[pending[exact]] = -1
-                    neighbour_keys[pending[exact], : found_keys.shape[1]] = found_keys[exact]
-            pending = pending[~exact]
+                exact = exact_rows(asked, kth, box, infinite, enough, _SAFETY_M)
+            if pending is None:
+                if neighbour_keys is not None and found is not None:
+                    store_keys(keys, found, exact, neighbour_keys)
+                pending = np.flatnonzero(~exact)
+            else:
+                out[pending[exact]] = block[exact]
+                if neighbour_keys is not None and found is not None:
+                    rows = pending[exact]
+                    neighbour_keys[rows] = -1
+                    neighbour_keys[rows, : found.shape[1]] = keys[found[exact]]
+                pending = pending[~exact]
             if pending.size:
+                rest = queries[pending]
                 if enough:
                     radius = kth[~exact] * (1.0 + 1e-6) + 2.0 * _SAFETY_M
                 else:
                     radius = np.full(pending.size, box[1] - box[0] + box[3] - box[2])
-                rest = asked[~exact]
                 box = np.array(
                     [
                         (rest[:, 0] - radius).min(),
@@ -661,38 +682,23 @@ class TiledScan:
             )
         else:
             candidates = self.tiles
-        parts_xyz, parts_keys, parts_attr = [], [], []
+        parts: list[tuple[_TileLevel, NDArray[np.intp]]] = []
         for other in candidates:
             if other not in self.store or not (
                 x_low <= other[0] <= x_high and y_low <= other[1] <= y_high
             ):
                 continue
             level = self._pyramid(other).levels[number]
-            xyz = level.xyz
-            inside = (
-                (xyz[:, 0] >= box[0])
-                & (xyz[:, 0] <= box[1])
-                & (xyz[:, 1] >= box[2])
-                & (xyz[:, 1] <= box[3])
-            )
-            parts_xyz.append(xyz[inside])
-            parts_keys.append(level.keys[inside])
-            parts_attr.append(level.attributes[inside])
-        return np.concatenate(parts_xyz), np.concatenate(parts_keys), np.concatenate(parts_attr)
-
-
-def _distance_to_edge(
-    queries: NDArray[np.float64], box: NDArray[np.float64], infinite: NDArray[np.bool_]
-) -> NDArray[np.float64]:
-    """Horizontal distance from each query to the nearest closed edge of ``box``."""
-    gaps = np.column_stack(
-        [
-            queries[:, 0] - box[0],
-            box[1] - queries[:, 0],
-            queries[:, 1] - box[2],
-            box[3] - queries[:, 1],
-        ]
-    )
-    gaps[:, infinite] = np.inf
-    distances: NDArray[np.float64] = gaps.min(axis=1)
-    return distances
+            parts.append((level, rows_in_box(level.xyz, box)))
+        # the parts' rows concatenated, copied on every thread
+        total = sum(rows.size for _, rows in parts)
+        xyz = np.empty((total, 3), np.float64)
+        keys = np.empty(total, np.int64)
+        attributes = np.empty((total, parts[0][0].attributes.shape[1]), np.float64)
+        offset = 0
+        for level, rows in parts:
+            put_rows(level.xyz, rows, xyz, offset)
+            put_values(level.keys, rows, keys, offset)
+            put_rows(level.attributes, rows, attributes, offset)
+            offset += rows.size
+        return xyz, keys, attributes

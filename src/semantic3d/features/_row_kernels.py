@@ -1,0 +1,181 @@
+"""Compiled copies, gathers and look-ups over the rows of feature tables and k-NN lists.
+
+Hand-written: numpy's fancy indexing, ``searchsorted`` and strided copies run on one
+thread, and a fresh table's pages are then first touched on that thread too. Inside the
+densest tile of a scan (near the scanner, often more than half its points) these steps
+ran alone between the parallel kernels. Each kernel here writes what the numpy
+expression it replaces would, row by row on numba's threads.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+from numpy.typing import NDArray
+
+__all__ = [
+    "copy_rows",
+    "exact_rows",
+    "leading_columns",
+    "put_rows",
+    "put_values",
+    "rows_in_box",
+    "rows_of_keys",
+    "scatter_rows",
+    "store_keys",
+    "take_rows",
+]
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def copy_rows(block: NDArray[np.generic], out: NDArray[np.generic]) -> None:  # pragma: no cover
+    """``out[...] = block`` for two ``(m, w)`` arrays (``out`` may be a column slice)."""
+    for row in numba.prange(block.shape[0]):
+        for column in range(block.shape[1]):
+            out[row, column] = block[row, column]
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def scatter_rows(
+    block: NDArray[np.float32], inverse: NDArray[np.int64], out: NDArray[np.float32]
+) -> None:  # pragma: no cover - compiled
+    """``out[:] = block[inverse]``, each row written once (no ``(m, w)`` temporary)."""
+    for row in numba.prange(inverse.size):
+        source = inverse[row]
+        for column in range(block.shape[1]):
+            out[row, column] = block[source, column]
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def take_rows(
+    source: NDArray[np.float64], rows: NDArray[np.int64]
+) -> NDArray[np.float64]:  # pragma: no cover - compiled
+    """``source[rows]`` for a 2-D ``source``."""
+    out = np.empty((rows.size, source.shape[1]), source.dtype)
+    for i in numba.prange(rows.size):
+        for column in range(source.shape[1]):
+            out[i, column] = source[rows[i], column]
+    return out
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def leading_columns(
+    found: NDArray[np.uint32], width: int
+) -> NDArray[np.uint32]:  # pragma: no cover
+    """``np.ascontiguousarray(found[:, :width])``."""
+    out = np.empty((found.shape[0], width), found.dtype)
+    for row in numba.prange(found.shape[0]):
+        for column in range(width):
+            out[row, column] = found[row, column]
+    return out
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def store_keys(
+    keys: NDArray[np.int64],
+    found: NDArray[np.int64],
+    exact: NDArray[np.bool_],
+    out: NDArray[np.int64],
+) -> None:  # pragma: no cover - compiled
+    """For every row with ``exact``: ``out[row, :w] = keys[found[row]]`` (``w`` found's
+    width) and ``-1`` in the columns past ``w``."""
+    width = found.shape[1]
+    for row in numba.prange(found.shape[0]):
+        if not exact[row]:
+            continue
+        for column in range(width):
+            out[row, column] = keys[found[row, column]]
+        for column in range(width, out.shape[1]):
+            out[row, column] = -1
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def exact_rows(
+    queries: NDArray[np.float64],
+    reach: NDArray[np.float64],
+    box: NDArray[np.float64],
+    infinite: NDArray[np.bool_],
+    enough: bool,
+    margin_m: float,
+) -> NDArray[np.bool_]:  # pragma: no cover - compiled
+    """Whether each query's ball of ``reach * (1 + 1e-6) + margin_m`` stays inside ``box``
+    (``x_low, x_high, y_low, y_high``) horizontally, edges marked ``infinite`` left out:
+    ``enough & (reach * (1.0 + 1e-6) + margin_m < distance to the nearest closed edge)``."""
+    exact = np.empty(queries.shape[0], np.bool_)
+    for row in numba.prange(queries.shape[0]):
+        x = queries[row, 0]
+        y = queries[row, 1]
+        edge = np.inf
+        if not infinite[0]:
+            edge = min(edge, x - box[0])
+        if not infinite[1]:
+            edge = min(edge, box[1] - x)
+        if not infinite[2]:
+            edge = min(edge, y - box[2])
+        if not infinite[3]:
+            edge = min(edge, box[3] - y)
+        exact[row] = enough and reach[row] * (1.0 + 1e-6) + margin_m < edge
+    return exact
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _rows_of_keys(
+    keys: NDArray[np.int64], row_keys: NDArray[np.int64], out: NDArray[np.int64]
+) -> None:  # pragma: no cover - compiled
+    last = row_keys.size - 1
+    for i in numba.prange(keys.size):
+        key = keys[i]
+        position = min(np.searchsorted(row_keys, key), last)
+        out[i] = position if row_keys[position] == key else -1
+
+
+def rows_of_keys(keys: NDArray[np.int64], row_keys: NDArray[np.int64]) -> NDArray[np.int64]:
+    """The row of every key in ``keys`` (any shape): its position in the sorted unique
+    ``row_keys``, or -1 where it is not there."""
+    rows = np.empty(keys.shape, np.int64)
+    if row_keys.size == 0:
+        rows[...] = -1
+        return rows
+    _rows_of_keys(
+        np.ascontiguousarray(keys, dtype=np.int64).reshape(-1),
+        np.ascontiguousarray(row_keys, dtype=np.int64),
+        rows.reshape(-1),
+    )
+    return rows
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _in_box(
+    xyz: NDArray[np.float64], box: NDArray[np.float64]
+) -> NDArray[np.bool_]:  # pragma: no cover
+    inside = np.empty(xyz.shape[0], np.bool_)
+    for row in numba.prange(xyz.shape[0]):
+        x = xyz[row, 0]
+        y = xyz[row, 1]
+        inside[row] = x >= box[0] and x <= box[1] and y >= box[2] and y <= box[3]
+    return inside
+
+
+def rows_in_box(xyz: NDArray[np.float64], box: NDArray[np.float64]) -> NDArray[np.intp]:
+    """The rows of ``xyz`` inside ``box`` (``x_low, x_high, y_low, y_high``, closed),
+    ascending."""
+    return np.flatnonzero(_in_box(xyz, np.ascontiguousarray(box, dtype=np.float64)))
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def put_rows(
+    source: NDArray[np.generic], rows: NDArray[np.intp], out: NDArray[np.generic], offset: int
+) -> None:  # pragma: no cover - compiled
+    """``out[offset : offset + rows.size] = source[rows]`` for 2-D arrays."""
+    for i in numba.prange(rows.size):
+        for column in range(source.shape[1]):
+            out[offset + i, column] = source[rows[i], column]
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def put_values(
+    source: NDArray[np.generic], rows: NDArray[np.intp], out: NDArray[np.generic], offset: int
+) -> None:  # pragma: no cover - compiled
+    """``out[offset : offset + rows.size] = source[rows]`` for 1-D arrays."""
+    for i in numba.prange(rows.size):
+        out[offset + i] = source[rows[i]]
