@@ -379,11 +379,37 @@ class TiledScan:
 
     def _compute_shared(self) -> None:
         """The coarse levels described whole and every level's first halo (what every
-        tile reads; computed before tiles are computed at the same time)."""
-        for number in range(self.config.n_levels):
-            if not self.config.per_point:
+        tile reads; computed before tiles are computed at the same time).
+
+        Levels are independent: they are computed at the same time on the thread budget's
+        threads, the largest first, numba's kernels of each on a share of the threads in
+        proportion to its voxels (a small level's kernels alone cannot fill many cores).
+        """
+        config = self.config
+        numbers = [n for n in range(config.n_levels) if n not in self._first_halo]
+        if not numbers:
+            return
+        n_threads = thread_budget()
+        weight = {
+            n: self._level_sizes[n] if not config.per_point and self._described_whole(n) else 0
+            for n in numbers
+        }
+        total = max(1, sum(weight.values()))
+
+        def compute(number: int) -> None:
+            if not config.per_point:
                 self._whole_level(number)
             self._first_halo_m(number)
+
+        for _ in map_in_threads(
+            compute,
+            sorted(numbers, key=lambda n: (-weight[n], n)),
+            n_threads=n_threads,
+            ordered=False,
+            numba_threads_per_task=lambda n: max(1, math.ceil(n_threads * weight[n] / total)),
+            name="s3d-shared",
+        ):
+            pass
 
     def map_tiles(
         self,
@@ -514,7 +540,7 @@ class TiledScan:
         if number in self._whole:
             return self._whole[number]
         result = None
-        if sum(self._level_sizes[number:]) <= self.whole_level_points:
+        if self._described_whole(number):
             box = np.array([-np.inf, np.inf, -np.inf, np.inf])
             xyz, keys, attributes = self._gather(number, box)
             order = np.argsort(keys)
@@ -537,6 +563,10 @@ class TiledScan:
             result = _WholeLevel(keys, rows, neighbour_keys)
         self._whole[number] = result
         return result
+
+    def _described_whole(self, number: int) -> bool:
+        """Whether level ``number`` is described whole (see :meth:`_whole_level`)."""
+        return sum(self._level_sizes[number:]) <= self.whole_level_points
 
     def _first_halo_m(self, number: int) -> float:
         """The halo a level's queries start with: most of them need no second ask.
