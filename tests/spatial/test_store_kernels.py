@@ -3,20 +3,30 @@
 
 from __future__ import annotations
 
+import numba
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from semantic3d.core.pointcloud import PointCloud
+from semantic3d.core.threads import thread_limit
 from semantic3d.spatial import TemporaryTileStore, TileGrid
+from semantic3d.spatial._kernels import stable_destinations
 from semantic3d.spatial.store import TilePoints, record_dtype, xyz_label_rows
+
+
+def _numpy_tile_keys(grid: TileGrid, xyz: np.ndarray) -> np.ndarray:
+    origin = np.asarray(grid.origin_xy, dtype=np.float64)
+    cells = np.floor((xyz[:, :2] - origin) / grid.cell_size_m).astype(np.int64)
+    return cells // grid.cells_per_tile
 
 
 def _reference(cloud: PointCloud, keep: np.ndarray, grid: TileGrid, n_sub: int) -> dict:
     """The store's arrays by numpy: records grouped by tile (scan order inside), each
     tile's points ordered by sub-cell with a stable argsort, and the sub-cell offsets."""
     kept = np.flatnonzero(keep)
-    keys = grid.tile_keys(cloud.xyz)[kept]
+    keys = _numpy_tile_keys(grid, cloud.xyz)[kept]
     tiles = sorted({(int(x), int(y)) for x, y in keys})
     records = np.empty(kept.size, record_dtype(with_labels=cloud.labels is not None))
     order = np.empty(kept.size, np.int32)
@@ -73,6 +83,69 @@ def test_store_arrays_equal_the_numpy_reference(
     assert store._points.tobytes() == expected["records"].tobytes()
     np.testing.assert_array_equal(store._order, expected["order"])
     np.testing.assert_array_equal(store._offsets, expected["offsets"])
+
+
+@pytest.mark.parametrize("n_threads", [1, 3])
+def test_a_store_of_many_blocks_equals_the_numpy_reference_on_any_threads(
+    n_threads: int,
+) -> None:
+    """Chunks of more points than one thread counts alone: the counts of several blocks
+    are summed before each block places its points."""
+    rng = np.random.default_rng(n_threads)
+    n = 230_000
+    cloud = PointCloud.from_arrays(
+        rng.uniform(-3.0, 3.0, (n, 3)),
+        intensity=rng.integers(-2048, 2047, n),
+        rgb=rng.integers(0, 256, (n, 3)),
+        labels=rng.integers(0, 9, n),
+    )
+    keep = rng.random(n) < 0.9
+    grid = TileGrid.square(1.7)
+    with thread_limit(n_threads), TemporaryTileStore.writer(grid=grid, subdivisions=5) as writer:
+        for start in range(0, n, 150_000):
+            writer.add(cloud[start : start + 150_000], keep=keep[start : start + 150_000])
+        store = writer.close()
+    expected = _reference(cloud, keep, grid, 5)
+    assert list(store.tiles) == expected["tiles"]
+    assert store._points is not None and store._order is not None
+    assert store._points.tobytes() == expected["records"].tobytes()
+    np.testing.assert_array_equal(store._order, expected["order"])
+    np.testing.assert_array_equal(store._offsets, expected["offsets"])
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    n=st.integers(0, 200_000),
+    n_slots=st.integers(1, 70),
+    n_threads=st.sampled_from([1, 2, 5]),
+    seed=st.integers(0, 1000),
+)
+def test_stable_destinations_equal_a_stable_argsort(
+    n: int, n_slots: int, n_threads: int, seed: int
+) -> None:
+    slots = np.random.default_rng(seed).integers(0, n_slots + 1, n)
+    with thread_limit(n_threads):
+        destination, counts = stable_destinations(slots, n_slots, numba.get_num_threads())
+    expected = np.empty(n, np.int64)
+    expected[np.argsort(slots, kind="stable")] = np.arange(n)
+    np.testing.assert_array_equal(destination, expected)
+    np.testing.assert_array_equal(counts, np.bincount(slots, minlength=n_slots + 1))
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    origin=st.tuples(st.floats(-1e4, 1e4), st.floats(-1e4, 1e4)),
+    cell=st.floats(0.01, 10.0),
+    cells_per_tile=st.integers(1, 64),
+    seed=st.integers(0, 1000),
+)
+def test_tile_keys_equal_the_numpy_expression(
+    origin: tuple[float, float], cell: float, cells_per_tile: int, seed: int
+) -> None:
+    grid = TileGrid(origin_xy=origin, cell_size_m=cell, cells_per_tile=cells_per_tile)
+    xyz = np.random.default_rng(seed).uniform(-2e4, 2e4, (500, 3))
+    xyz[:10, :2] = np.asarray(origin) + cell * np.arange(10)[:, None]  # on cell edges
+    np.testing.assert_array_equal(grid.tile_keys(xyz), _numpy_tile_keys(grid, xyz))
 
 
 @settings(max_examples=25, deadline=None)

@@ -5,6 +5,9 @@ passes for it (a stable ``argsort`` of the tile ids, a gather of the 40-byte rec
 building those records in scan order first). A counting sort is one pass to count, a
 prefix sum and one pass to scatter; it is stable, so each group keeps the scan's order and
 the result is the one ``np.argsort(ids, kind="stable")`` gives.
+
+The counts and the scatter run on every thread (blocks of points counted apart, then
+placed from the counts summed before them), so binning does not wait on one core.
 """
 
 from __future__ import annotations
@@ -12,8 +15,47 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
+_BLOCK_POINTS = 1 << 15  # the least points a thread counts on its own
 
-@nb.njit(cache=True, nogil=True)
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def stable_destinations(
+    slots: np.ndarray, n_slots: int, n_threads: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Where a stable counting sort by ``slots`` (values ``0..n_slots``) puts each element,
+    and the elements per slot (``n_slots + 1`` counts).
+
+    Blocks of consecutive elements are counted on every thread, the counts summed slot by
+    slot and block by block, and each block then places its own elements: the result is
+    ``np.argsort(np.argsort(slots, kind="stable"))`` whatever the number of threads
+    (``n_threads``, numba's threads: it sets the number of blocks).
+    """
+    n = slots.shape[0]
+    n_blocks = max(1, min(4 * n_threads, n // _BLOCK_POINTS))
+    per_block = -(-n // n_blocks)
+    counts = np.zeros((n_blocks, n_slots + 1), np.int64)
+    for block in nb.prange(n_blocks):
+        for i in range(block * per_block, min(n, (block + 1) * per_block)):
+            counts[block, slots[i]] += 1
+    starts = np.empty((n_blocks, n_slots + 1), np.int64)
+    totals = np.zeros(n_slots + 1, np.int64)
+    running = 0
+    for slot in range(n_slots + 1):
+        for block in range(n_blocks):
+            starts[block, slot] = running
+            running += counts[block, slot]
+            totals[slot] += counts[block, slot]
+    destination = np.empty(n, np.int64)
+    for block in nb.prange(n_blocks):
+        nexts = starts[block].copy()
+        for i in range(block * per_block, min(n, (block + 1) * per_block)):
+            slot = slots[i]
+            destination[i] = nexts[slot]
+            nexts[slot] += 1
+    return destination, totals
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
 def group_by_slot(
     slots: np.ndarray,
     n_slots: int,
@@ -27,6 +69,7 @@ def group_by_slot(
     out_intensity: np.ndarray,
     out_rgb: np.ndarray,
     out_labels: np.ndarray,
+    n_threads: int,
 ) -> np.ndarray:  # pragma: no cover - compiled
     """Scatter point ``i`` to the records of group ``slots[i]`` (``n_slots``: dropped).
 
@@ -34,22 +77,12 @@ def group_by_slot(
     order and scan order inside a group. ``labels`` and ``out_labels`` are empty when the
     points have none. Returns the points per slot.
     """
-    n = slots.shape[0]
-    counts = np.zeros(n_slots + 1, np.int64)
-    for i in range(n):
-        counts[slots[i]] += 1
-    nexts = np.empty(n_slots + 1, np.int64)
-    running = 0
-    for slot in range(n_slots + 1):
-        nexts[slot] = running
-        running += counts[slot]
+    destination, counts = stable_destinations(slots, n_slots, n_threads)
     with_labels = out_labels.shape[0] > 0
-    for i in range(n):
-        slot = slots[i]
-        if slot == n_slots:
+    for i in nb.prange(slots.shape[0]):
+        if slots[i] == n_slots:
             continue
-        j = nexts[slot]
-        nexts[slot] = j + 1
+        j = destination[i]
         out_xyz[j, 0] = xyz[i, 0]
         out_xyz[j, 1] = xyz[i, 1]
         out_xyz[j, 2] = xyz[i, 2]
@@ -63,7 +96,7 @@ def group_by_slot(
     return counts[:n_slots]
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, parallel=True)
 def sub_cell_order(
     xyz: np.ndarray,
     x0: float,
@@ -72,6 +105,7 @@ def sub_cell_order(
     n_sub: int,
     order: np.ndarray,
     offsets: np.ndarray,
+    n_threads: int,
 ) -> None:  # pragma: no cover - compiled
     """A tile's points sub-cell by sub-cell: ``order`` (local indices) and ``offsets``.
 
@@ -82,20 +116,30 @@ def sub_cell_order(
     n = xyz.shape[0]
     top = float(n_sub - 1)
     cells = np.empty(n, np.int64)
-    offsets[:] = 0
-    for i in range(n):
+    for i in nb.prange(n):
         sx = min(max(np.floor((xyz[i, 0] - x0) / sub_m), 0.0), top)
         sy = min(max(np.floor((xyz[i, 1] - y0) / sub_m), 0.0), top)
-        cell = int(sx) * n_sub + int(sy)
-        cells[i] = cell
-        offsets[cell + 1] += 1
-    for cell in range(n_sub * n_sub):
-        offsets[cell + 1] += offsets[cell]
-    nexts = offsets[:-1].copy()
-    for i in range(n):
-        cell = cells[i]
-        order[nexts[cell]] = i
-        nexts[cell] += 1
+        cells[i] = int(sx) * n_sub + int(sy)
+    n_cells = n_sub * n_sub
+    destination, counts = stable_destinations(cells, n_cells, n_threads)
+    offsets[0] = 0
+    for cell in range(n_cells):
+        offsets[cell + 1] = offsets[cell] + counts[cell]
+    for i in nb.prange(n):
+        order[destination[i]] = i
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def tile_keys(
+    xyz: np.ndarray, origin_x: float, origin_y: float, cell_m: float, cells_per_tile: int
+) -> np.ndarray:  # pragma: no cover - compiled
+    """``(n, 2)`` ``floor((xy - origin) / cell_m) // cells_per_tile`` of every point, as
+    numpy computes it (:meth:`~semantic3d.spatial.grid.TileGrid.tile_keys`)."""
+    keys = np.empty((xyz.shape[0], 2), np.int64)
+    for i in nb.prange(xyz.shape[0]):
+        keys[i, 0] = np.int64(np.floor((xyz[i, 0] - origin_x) / cell_m)) // cells_per_tile
+        keys[i, 1] = np.int64(np.floor((xyz[i, 1] - origin_y) / cell_m)) // cells_per_tile
+    return keys
 
 
 @nb.njit(cache=True, nogil=True)

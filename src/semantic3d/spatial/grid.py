@@ -70,11 +70,18 @@ class TileGrid:
 
     def tile_keys(self, xyz: NDArray[np.float64]) -> NDArray[np.int64]:
         """``(n, 2)`` int64 tile index of each point of ``(n, >=2)`` coordinates."""
-        origin = np.asarray(self.origin_xy, dtype=np.float64)
-        cells = np.floor((xyz[:, :2] - origin) / self.cell_size_m).astype(np.int64)
-        if self.cells_per_tile == 1:
-            return cells
-        keys: NDArray[np.int64] = cells // self.cells_per_tile
+        from semantic3d.spatial._kernels import tile_keys
+
+        points = np.asarray(xyz)
+        if points.ndim != 2 or points.shape[1] < 2:
+            raise ShapeError(f"xyz: expected (n, >=2) coordinates, found {points.shape}")
+        keys: NDArray[np.int64] = tile_keys(
+            np.ascontiguousarray(points, dtype=np.float64),
+            float(self.origin_xy[0]),
+            float(self.origin_xy[1]),
+            float(self.cell_size_m),
+            int(self.cells_per_tile),
+        )
         return keys
 
     def tile_bounds(self, tile: TileKey) -> Bounds:

@@ -602,6 +602,8 @@ class TileStoreWriter:
         # Number the chunk's tiles densely, then one counting sort (compiled) writes the
         # records grouped by tile, scan order inside a tile. Dropped points get the last
         # id and are left out.
+        import numba
+
         from semantic3d.spatial._kernels import group_by_slot
 
         if keep is not None:
@@ -638,6 +640,7 @@ class TileStoreWriter:
             grouped["intensity"],
             grouped["rgb"],
             no_labels if labels is None else grouped["labels"],
+            numba.get_num_threads(),
         )
         ends = np.cumsum(counts)
         for slot in np.flatnonzero(counts).tolist():
@@ -722,6 +725,8 @@ class TileStoreWriter:
         starts: NDArray[np.int64],
     ) -> None:
         """Write every tile's records, contiguous and in tile order, and its sub-cell index."""
+        import numba
+
         from semantic3d.spatial._kernels import sub_cell_order
 
         begin = 0
@@ -744,6 +749,7 @@ class TileStoreWriter:
                 self.subdivisions,
                 order[begin:end],
                 offsets[row],
+                numba.get_num_threads(),
             )
             starts[row + 1] = end
             self._part(tile).unlink(missing_ok=True)

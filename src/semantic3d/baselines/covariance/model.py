@@ -299,9 +299,12 @@ class _PositionFile:
                             chunk.xyz[0],
                             coarsest_voxel_size_m=self.config.features.coarsest_voxel_size_m,
                         )
-                    xyz_file.write((chunk.xyz - origin).astype(np.float32).tobytes())
+                    # one pass: the float64 difference rounded to float32 as it is stored
+                    relative = np.empty(chunk.xyz.shape, np.float32)
+                    np.subtract(chunk.xyz, origin, out=relative, casting="same_kind")
+                    xyz_file.write(relative.data)
                     tiles = point_tiles(chunk.xyz, origin=origin, config=self.config)
-                    tile_file.write(tiles.tobytes())
+                    tile_file.write(tiles.data)
                 yield chunk
         self._complete = True
 
