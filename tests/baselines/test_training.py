@@ -69,6 +69,36 @@ def test_training_set_does_not_depend_on_how_the_scans_are_cut(scene_dir: Path) 
     np.testing.assert_array_equal(tiled.groups, whole.groups)
 
 
+@pytest.mark.parametrize(("budget", "at_once"), [(1, 1), (2, 2)])
+def test_scans_are_described_at_once_on_shares_that_fill_the_thread_budget(
+    scene_dir: Path, monkeypatch: pytest.MonkeyPatch, budget: int, at_once: int
+) -> None:
+    """Scans go ``budget // 4`` at a time, at least 2, each with its share of numba's
+    threads: on a 2-thread budget two scans on one thread each (before, one scan ran
+    alone on one thread and the other thread idled)."""
+    import threading
+
+    import numba
+
+    from semantic3d.baselines.covariance import training as training_module
+    from semantic3d.core.threads import thread_limit
+
+    together = threading.Barrier(at_once, timeout=30)  # breaks unless they run at once
+    seen: list[int] = []
+    describe = training_module.scan_training_rows
+
+    def counting(scan: LabelledScan, select: NDArray[np.int64], **kwargs: object) -> ScanRows:
+        seen.append(numba.get_num_threads())
+        together.wait()
+        return describe(scan, select, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(training_module, "scan_training_rows", counting)
+    scans = find_labelled_scans(scene_dir, names=["train_a", "train_b"])
+    with thread_limit(budget):
+        build_training_set(scans, config=SMALL_CONFIG)
+    assert seen == [budget // at_once] * 2
+
+
 def test_a_rows_of_scan_hook_that_loses_points_is_caught(scene_dir: Path) -> None:
     scans = find_labelled_scans(scene_dir, names=["train_a"])
 

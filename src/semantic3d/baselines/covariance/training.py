@@ -185,12 +185,13 @@ def build_training_set(
             for scan, select in items
         )
     else:  # scans described at the same time, each with a share of the thread budget
-        n_at_once = max(1, min(len(items), thread_budget() // _THREADS_PER_SCAN))
+        budget = thread_budget()
+        n_at_once = max(1, min(len(items), max(min(2, budget), budget // _THREADS_PER_SCAN)))
         described = map_in_threads(
             partial(_scan_rows, config=config),
             items,
-            n_threads=n_at_once,
-            numba_threads_per_task=max(1, thread_budget() // n_at_once),
+            n_threads=budget,  # the threads of all scans at once: a share each
+            numba_threads_per_task=max(1, budget // n_at_once),
             max_pending=n_at_once,
             name="s3d-train-scan",
         )
@@ -263,7 +264,8 @@ def merge_scan_rows(
 
 _THREADS_PER_SCAN = 4
 """Threads one scan's features keep busy (numba kernels between Python steps): the
-training scans are described ``budget // 4`` at a time (memory: that many scans)."""
+training scans are described ``budget // 4`` at a time, at least 2 (as ``predict --data``
+labels them; memory: that many scans), each on its share of the budget."""
 
 
 def _map_in_threads(function: Callable[[Any], Any], items: Sequence[Any]) -> Iterator[Any]:
