@@ -13,7 +13,7 @@ from semantic3d.core.pointcloud import PointCloud
 from semantic3d.core.threads import thread_limit
 from semantic3d.spatial import TemporaryTileStore, TileGrid
 from semantic3d.spatial._kernels import stable_destinations
-from semantic3d.spatial.store import TilePoints, record_dtype, xyz_label_rows
+from semantic3d.spatial.store import TilePoints, TileStore, record_dtype, xyz_label_rows
 
 
 def _numpy_tile_keys(grid: TileGrid, xyz: np.ndarray) -> np.ndarray:
@@ -51,6 +51,23 @@ def _reference(cloud: PointCloud, keep: np.ndarray, grid: TileGrid, n_sub: int) 
     return {"tiles": tiles, "records": records, "order": order, "offsets": offsets}
 
 
+def _random_cloud(rng: np.random.Generator, n: int, *, labels: bool) -> PointCloud:
+    return PointCloud.from_arrays(
+        rng.uniform(-3.0, 3.0, (n, 3)),
+        intensity=rng.integers(-2048, 2047, n),
+        rgb=rng.integers(0, 256, (n, 3)),
+        labels=rng.integers(0, 9, n) if labels else None,
+    )
+
+
+def _assert_store_is(store: TileStore, expected: dict) -> None:
+    assert list(store.tiles) == expected["tiles"]
+    assert store._points is not None and store._order is not None
+    assert store._points.tobytes() == expected["records"].tobytes()
+    np.testing.assert_array_equal(store._order, expected["order"])
+    np.testing.assert_array_equal(store._offsets, expected["offsets"])
+
+
 @settings(max_examples=25, deadline=None)
 @given(
     n=st.integers(0, 400),
@@ -65,24 +82,14 @@ def test_store_arrays_equal_the_numpy_reference(
     n: int, chunk: int, tile: float, n_sub: int, labels: bool, drop: int, seed: int
 ) -> None:
     rng = np.random.default_rng(seed)
-    cloud = PointCloud.from_arrays(
-        rng.uniform(-3.0, 3.0, (n, 3)),
-        intensity=rng.integers(-2048, 2047, n),
-        rgb=rng.integers(0, 256, (n, 3)),
-        labels=rng.integers(0, 9, n) if labels else None,
-    )
+    cloud = _random_cloud(rng, n, labels=labels)
     keep = rng.integers(0, 4, n) >= drop
     grid = TileGrid.square(tile)
     with TemporaryTileStore.writer(grid=grid, subdivisions=n_sub) as writer:
         for start in range(0, n, chunk):
             writer.add(cloud[start : start + chunk], keep=keep[start : start + chunk])
         store = writer.close()
-    expected = _reference(cloud, keep, grid, n_sub)
-    assert list(store.tiles) == expected["tiles"]
-    assert store._points is not None and store._order is not None
-    assert store._points.tobytes() == expected["records"].tobytes()
-    np.testing.assert_array_equal(store._order, expected["order"])
-    np.testing.assert_array_equal(store._offsets, expected["offsets"])
+    _assert_store_is(store, _reference(cloud, keep, grid, n_sub))
 
 
 @pytest.mark.parametrize("n_threads", [1, 3])
@@ -93,24 +100,14 @@ def test_a_store_of_many_blocks_equals_the_numpy_reference_on_any_threads(
     are summed before each block places its points."""
     rng = np.random.default_rng(n_threads)
     n = 230_000
-    cloud = PointCloud.from_arrays(
-        rng.uniform(-3.0, 3.0, (n, 3)),
-        intensity=rng.integers(-2048, 2047, n),
-        rgb=rng.integers(0, 256, (n, 3)),
-        labels=rng.integers(0, 9, n),
-    )
+    cloud = _random_cloud(rng, n, labels=True)
     keep = rng.random(n) < 0.9
     grid = TileGrid.square(1.7)
     with thread_limit(n_threads), TemporaryTileStore.writer(grid=grid, subdivisions=5) as writer:
         for start in range(0, n, 150_000):
             writer.add(cloud[start : start + 150_000], keep=keep[start : start + 150_000])
         store = writer.close()
-    expected = _reference(cloud, keep, grid, 5)
-    assert list(store.tiles) == expected["tiles"]
-    assert store._points is not None and store._order is not None
-    assert store._points.tobytes() == expected["records"].tobytes()
-    np.testing.assert_array_equal(store._order, expected["order"])
-    np.testing.assert_array_equal(store._offsets, expected["offsets"])
+    _assert_store_is(store, _reference(cloud, keep, grid, 5))
 
 
 @settings(max_examples=30, deadline=None)
