@@ -32,6 +32,8 @@ only 1 and 2 threads (a 2-core machine) the fit is exact and the 16-thread figur
 prediction. ``s`` is also estimated from the 2-thread run's thread samples (time with one
 thread running over the time one thread would take), which a loaded machine disturbs less
 than wall time. The load average is printed beside every row: compare rows of one run.
+``--where`` also names the code that runs while at most a quarter of the threads do, at
+the largest thread count: the serial parts to remove next.
 Writes ``benchmarks/out/bench_scaling.json``.
 """
 
@@ -56,16 +58,25 @@ OUT = ROOT / "benchmarks" / "out"
 PATHS = ("iter_points", "read_labels", "simulate", "predict", "train", "evaluate")
 PEERS = {"iter_points": "pyarrow.csv", "read_labels": "pyarrow.csv"}
 N_EVALUATED_SCANS = 8
+WHERE_TOP = 12
 
 
 # --- the measured process ------------------------------------------------------------------
 
 
 class _Sampler:
-    """Counts this process's threads in state R (running or ready) every 2 ms."""
+    """Counts this process's threads in state R (running or ready) every 2 ms.
 
-    def __init__(self) -> None:
+    With ``few`` (a thread count), also names the code that runs while at most that many
+    threads do: per running thread its innermost frames of the package (a Python thread)
+    or ``[compiled worker]`` (a numba / OpenMP thread, whose caller's frames are then
+    those of the Python thread waiting in the compiled call).
+    """
+
+    def __init__(self, few: int | None = None) -> None:
         self.counts: Counter[int] = Counter()
+        self.few = few
+        self.stacks: Counter[str] = Counter()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
 
@@ -80,7 +91,7 @@ class _Sampler:
     def _run(self) -> None:
         me = threading.get_native_id()
         while not self._stop.is_set():
-            running = 0
+            running = []
             for task in Path("/proc/self/task").iterdir():
                 if int(task.name) == me:
                     continue
@@ -89,23 +100,52 @@ class _Sampler:
                 except OSError:
                     continue
                 end = data.rindex(b")")
-                running += data[end + 2 : end + 3] == b"R"
-            self.counts[running] += 1
+                if data[end + 2 : end + 3] == b"R":
+                    running.append(int(task.name))
+            self.counts[len(running)] += 1
+            if self.few is not None and 0 < len(running) <= self.few:
+                self._name(running)
             time.sleep(0.002)
 
+    def _name(self, running: list[int]) -> None:
+        python = {t.native_id: t.ident for t in threading.enumerate()}
+        frames = sys._current_frames()
+        for native in running:
+            ident = python.get(native)
+            if ident is None:
+                self.stacks["[compiled worker]"] += 1
+            else:
+                self.stacks[_stack(frames.get(ident))] += 1
 
-def _measure(run: Callable[[], int]) -> dict[str, Any]:
+
+def _stack(frame: Any, depth: int = 4) -> str:
+    """The innermost ``depth`` frames of the package: ``file:function:line < ...``."""
+    names: list[str] = []
+    while frame is not None and len(names) < depth:
+        code = frame.f_code
+        if "semantic3d" in code.co_filename:
+            names.append(f"{Path(code.co_filename).name}:{code.co_name}:{frame.f_lineno}")
+        frame = frame.f_back
+    return " < ".join(names) or "(outside the package)"
+
+
+def _measure(run: Callable[[], int], few: int | None = None) -> dict[str, Any]:
     load = os.getloadavg()[0]
     cpu, wall = time.process_time(), time.perf_counter()
-    with _Sampler() as sampler:
+    with _Sampler(few) as sampler:
         items = run()
     wall = time.perf_counter() - wall
+    total = max(1, sum(sampler.counts.values()))
     return {
         "items": items,
         "wall_s": wall,
         "cpu_s": time.process_time() - cpu,
         "running": {str(k): v for k, v in sorted(sampler.counts.items())},
         "load": load,
+        # share of all samples at which each piece of code ran while few threads did
+        "few_running": [
+            [stack, count / total] for stack, count in sampler.stacks.most_common(WHERE_TOP)
+        ],
     }
 
 
@@ -134,7 +174,7 @@ def child(job: dict[str, Any]) -> dict[str, Any]:
         def run() -> int:
             return sum(chunk.n_points for chunk in iter_ascii_points(scan))
 
-        run_small: Callable[[], int] = lambda: sum(  # noqa: E731
+        run_small: Callable[[], int] | None = lambda: sum(  # noqa: E731
             c.n_points for c in iter_ascii_points(Path(job["small"]))
         )
         peer: Callable[[], int] | None = lambda: _pyarrow_rows(scan, n, list("xyzirgb"))  # noqa: E731
@@ -210,7 +250,8 @@ def child(job: dict[str, Any]) -> dict[str, Any]:
     else:
         run()
     repeat = max(1, int(job.get("repeat", 1)))
-    result = {"ours": min((_measure(run) for _ in range(repeat)), key=lambda m: m["wall_s"])}
+    few = job.get("few")
+    result = {"ours": min((_measure(run, few) for _ in range(repeat)), key=lambda m: m["wall_s"])}
     if peer is not None:
         peer()
         result["peer"] = min((_measure(peer) for _ in range(repeat)), key=lambda m: m["wall_s"])
@@ -305,6 +346,19 @@ def _prepare(args: argparse.Namespace, work: Path) -> dict[str, Any]:
     }
 
 
+def _print_where(rows: list[dict[str, Any]], n: int) -> None:
+    few = max(1, n // 4)
+    print(f"\nWhere at most {few} of {n} threads ran (share of all samples; one line a thread)")
+    for row in rows:
+        if row["threads"] != n or not row.get("few_running"):
+            continue
+        samples = {int(k): v for k, v in row["running"].items()}
+        share = sum(v for k, v in samples.items() if 0 < k <= few) / max(1, sum(samples.values()))
+        print(f"{row['path']}: {share:.0%} of the samples")
+        for stack, part in row["few_running"]:
+            print(f"  {part:6.1%}  {stack}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--child", help=argparse.SUPPRESS)
@@ -315,6 +369,12 @@ def main() -> None:
     parser.add_argument("--repeat", type=int, default=3, help="Best of this many runs.")
     parser.add_argument("--quick", action="store_true", help="1 M points, best of 2.")
     parser.add_argument("--workdir", default=None, help="Scratch folder (default: /tmp).")
+    parser.add_argument(
+        "--where",
+        action="store_true",
+        help="Also name the code running while at most a quarter of the threads do "
+        "(at least one), for the largest thread count.",
+    )
     args = parser.parse_args()
     if args.child:
         print(json.dumps(child(json.loads(args.child))))
@@ -344,6 +404,8 @@ def main() -> None:
             rates: dict[int, float] = {}
             for n in counts:
                 job = {**shared, "path": path, "threads": n, "repeat": args.repeat}
+                if args.where and n == counts[-1]:
+                    job["few"] = max(1, n // 4)
                 result = _run_child(job)
                 ours = result["ours"]
                 rate = ours["items"] / ours["wall_s"]
@@ -360,7 +422,10 @@ def main() -> None:
                     "mean_running": mean,
                     "peer": PEERS.get(path),
                     "peer_rate": peer_rate,
-                    **{key: ours[key] for key in ("items", "wall_s", "cpu_s", "running", "load")},
+                    **{
+                        key: ours[key]
+                        for key in ("items", "wall_s", "cpu_s", "running", "load", "few_running")
+                    },
                 }
                 if peer:
                     row["peer_wall_s"] = peer["wall_s"]
@@ -398,6 +463,8 @@ def main() -> None:
             + f"; on 16 threads {fit['predicted_speedup_16']:.1f}x, "
             f"{fit['predicted_rate_16'] / 1e6:.3f} M/s"
         )
+    if args.where:
+        _print_where(rows, counts[-1])
     OUT.mkdir(parents=True, exist_ok=True)
     report = {
         "cores": cores,

@@ -17,7 +17,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from semantic3d.core.errors import ShapeError
 from semantic3d.core.pointcloud import PointCloud
-from semantic3d.features._row_kernels import copy_rows, scatter_rows
+from semantic3d.features._row_kernels import copy_rows, scatter_rows, take_rows
 from semantic3d.features.attributes import compute_attribute_features
 from semantic3d.features.config import FeatureConfig
 from semantic3d.features.covariance import (
@@ -228,7 +228,7 @@ def compute_multiscale_features(
         ) -> None:
             # every voxel of the level (the usual case): query the level's own array,
             # whose float32 copy the index already holds
-            queries = level.xyz if needed.size == level.n_voxels else level.xyz[needed]
+            queries = level.xyz if needed.size == level.n_voxels else take_rows(level.xyz, needed)
             compute_level_features(
                 index,
                 level.attributes,

@@ -517,11 +517,11 @@ class TiledScan:
                     )
                 else:
                     at = np.searchsorted(whole.keys, pyramid.levels[number].keys[needed])
-                    out[:] = whole.rows[at]
+                    put_rows(whole.rows, at, out, 0)  # out[:] = whole.rows[at]
                     if number == 0 and whole.neighbour_keys is not None:
-                        found = whole.neighbour_keys[at]
-                        neighbour_keys[:, : found.shape[1]] = found
-                        neighbour_keys[:, found.shape[1] :] = -1
+                        found = whole.neighbour_keys.shape[1]
+                        put_rows(whole.neighbour_keys, at, neighbour_keys[:, :found], 0)
+                        neighbour_keys[:, found:] = -1
 
             fill_level_columns(values[:, number * width : (number + 1) * width], ancestor, compute)
         neighbours = rows_of_keys(neighbour_keys, pyramid.levels[0].keys[voxels])
