@@ -104,6 +104,8 @@ def _cell_codes(
     return _cell_codes_kernel(points, origin, cell)
 
 
+# Hand-written: numpy's floor, casts and shifts are passes over the level on one thread;
+# this is one pass on every thread (the same codes).
 @numba.njit(cache=True, nogil=True, parallel=True)
 def _cell_codes_kernel(
     points: NDArray[np.float64], origin: NDArray[np.float64], cell: float
