@@ -169,9 +169,13 @@ class Primitive:
         """The 3×3 local-to-world rotation (columns are the local axes in world coordinates)."""
         return rotation_matrix(self.yaw_rad, self.pitch_rad, self.roll_rad)
 
-    def bounds(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """World axis-aligned bounds ``(lo, hi)``, including the whole motion segment."""
-        extent = np.abs(self.rotation()) @ np.asarray(self.half_size)
+    def bounds(
+        self, rotation: NDArray[np.float64] | None = None
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """World axis-aligned bounds ``(lo, hi)``, including the whole motion segment
+        (``rotation``: :meth:`rotation`, when the caller has it already)."""
+        turn = self.rotation() if rotation is None else rotation
+        extent = np.abs(turn) @ np.asarray(self.half_size)
         center = np.asarray(self.center)
         lo, hi = center - extent, center + extent
         if self.motion is not None:
@@ -251,7 +255,8 @@ def pack_primitives(primitives: Sequence[Primitive]) -> PackedPrimitives:
     for i, prim in enumerate(primitives):
         row = params[i]
         row[P_CENTER : P_CENTER + 3] = prim.center
-        row[P_WORLD_TO_LOCAL : P_WORLD_TO_LOCAL + 9] = prim.rotation().T.ravel()
+        rotation = prim.rotation()
+        row[P_WORLD_TO_LOCAL : P_WORLD_TO_LOCAL + 9] = rotation.T.ravel()
         row[P_HALF : P_HALF + 3] = prim.half_size
         if prim.motion is not None:
             row[P_MOTION_DIR : P_MOTION_DIR + 3] = prim.motion.direction
@@ -262,5 +267,5 @@ def pack_primitives(primitives: Sequence[Primitive]) -> PackedPrimitives:
         pack_surface(prim.surface, row, P_RGB)
         shapes[i] = int(prim.shape)
         labels[i] = prim.label
-        lower[i], upper[i] = prim.bounds()
+        lower[i], upper[i] = prim.bounds(rotation)
     return PackedPrimitives(params, shapes, labels, lower, upper)
