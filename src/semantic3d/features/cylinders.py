@@ -98,16 +98,10 @@ def compute_cylinder_features(
 _SHIFT = 31
 
 
-def _cell_codes(
-    points: NDArray[np.float64], origin: NDArray[np.float64], cell: float
-) -> NDArray[np.int64]:
-    return _cell_codes_kernel(points, origin, cell)
-
-
 # Hand-written: numpy's floor, casts and shifts are passes over the level on one thread;
 # this is one pass on every thread (the same codes).
 @numba.njit(cache=True, nogil=True, parallel=True)
-def _cell_codes_kernel(
+def _cell_codes(
     points: NDArray[np.float64], origin: NDArray[np.float64], cell: float
 ) -> NDArray[np.int64]:  # pragma: no cover - compiled
     codes = np.empty(points.shape[0], np.int64)

@@ -23,6 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from semantic3d import __version__
+from semantic3d.baselines.common.prediction import scans_at_once
 from semantic3d.baselines.common.scans import LabelledScan, TrainingDataError, find_labelled_scans
 from semantic3d.baselines.covariance.config import CovarianceConfig
 from semantic3d.baselines.covariance.estimator import CovarianceClassifier
@@ -186,7 +187,8 @@ def build_training_set(
         )
     else:  # scans described at the same time, each with a share of the thread budget
         budget = thread_budget()
-        n_at_once = max(1, min(len(items), max(min(2, budget), budget // _THREADS_PER_SCAN)))
+        # as many at once as `predict --data` labels (memory: that many scans)
+        n_at_once = scans_at_once(len(items))
         described = map_in_threads(
             partial(_scan_rows, config=config),
             items,
@@ -260,12 +262,6 @@ def merge_scan_rows(
             raise RuntimeError("feature rows without labels")
         labels.append(block[2])
     return indices[order], rows, np.concatenate(labels)[order]
-
-
-_THREADS_PER_SCAN = 4
-"""Threads one scan's features keep busy (numba kernels between Python steps): the
-training scans are described ``budget // 4`` at a time, at least 2 (as ``predict --data``
-labels them; memory: that many scans), each on its share of the budget."""
 
 
 def _map_in_threads(function: Callable[[Any], Any], items: Sequence[Any]) -> Iterator[Any]:
