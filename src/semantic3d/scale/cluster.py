@@ -212,7 +212,12 @@ class DaskCluster:
         )
         index = {future.key: number for number, future in enumerate(futures)}
         try:
-            completed = as_completed(futures, with_results=True, raise_errors=False)
+            # Dask's as_completed runs on the loop of the newest client unless told; with
+            # two clients in one process (two clusters open) it then waited on this
+            # client's futures from the other's loop and could miss their completion for ever.
+            completed = as_completed(
+                futures, loop=self.client.loop, with_results=True, raise_errors=False
+            )
             for done, (future, result) in enumerate(completed, start=1):
                 if future.status == "error":
                     error = future.exception()
