@@ -11,7 +11,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from semantic3d.baselines.covariance._context_kernels import expansion_capacities
-from semantic3d.baselines.covariance._graph_cut import arc_layout, expand_labels, max_flow
+from semantic3d.baselines.covariance._graph_cut import (
+    arc_layout,
+    expand_labels,
+    index_type,
+    max_flow,
+)
 from semantic3d.baselines.covariance.context import (
     alpha_expansion,
     knn_edges,
@@ -50,9 +55,10 @@ def _compiled_cut(
     reverse: np.ndarray,
     source: np.ndarray,
     sink: np.ndarray,
+    index: np.ndarray,
 ) -> tuple[float, np.ndarray]:
     n = source.size
-    row_start, head, sister, forward, backward = arc_layout(n, first, second)
+    row_start, head, sister, forward, backward = arc_layout(n, first, second, index)
     residual = np.empty(2 * first.size)
     residual[forward], residual[backward] = capacity, reverse
     sink_side = np.empty(n, np.bool_)
@@ -65,7 +71,10 @@ def _compiled_cut(
 @given(graphs())
 def test_max_flow_equals_pymaxflow_and_its_cut(graph: tuple[np.ndarray, ...]) -> None:
     first, second, capacity, reverse, source, sink = graph
-    flow, sink_side = _compiled_cut(*graph)
+    flow, sink_side = _compiled_cut(*graph, index_type(source.size, first.size))
+    wide = _compiled_cut(*graph, np.empty(0, np.int64))  # graphs too large for int32
+    assert wide[0] == flow
+    np.testing.assert_array_equal(wide[1], sink_side)
 
     reference = maxflow.Graph[float](source.size, first.size)
     nodes = reference.add_nodes(source.size)
@@ -156,3 +165,34 @@ def test_expansion_runs_on_several_threads_at_once() -> None:
         thread.join()
     for expected, found in zip(alone, together, strict=True):
         np.testing.assert_array_equal(found, expected)
+
+
+def test_graphs_are_numbered_in_int32_while_they_fit() -> None:
+    assert index_type(10, 40).dtype == np.int32
+    assert index_type(3_000_000, 12_000_000).dtype == np.int32
+    assert index_type(10, 2**30).dtype == np.int64  # 2**31 arcs
+    assert index_type(2**31, 10).dtype == np.int64
+
+
+@settings(max_examples=100, deadline=None)
+@given(graphs(), st.integers(0, 3), st.sampled_from([0.5, 4.0]))
+def test_move_capacities_written_onto_arcs_are_those_of_the_edges(
+    graph: tuple[np.ndarray, ...], alpha: int, weight: float
+) -> None:
+    from semantic3d.baselines.covariance._context_kernels import expansion_arcs
+
+    first, second, _, _, source, _ = graph
+    n = source.size
+    rng = np.random.default_rng(n + first.size)
+    unary = rng.random((n, 4)) * 3
+    current = rng.integers(0, 4, n).astype(np.int64)
+    terminal, forward, backward = np.empty(n), np.empty(first.size), np.empty(first.size)
+    expansion_capacities(unary, first, second, current, alpha, weight, terminal, forward, backward)
+    _, _, _, forward_arc, backward_arc = arc_layout(n, first, second, index_type(n, first.size))
+    on_arcs, residual = np.empty(n), np.full(2 * first.size, np.nan)
+    expansion_arcs(
+        unary, first, second, current, alpha, weight, on_arcs, forward_arc, backward_arc, residual
+    )
+    np.testing.assert_array_equal(on_arcs, terminal)
+    np.testing.assert_array_equal(residual[forward_arc], forward)
+    np.testing.assert_array_equal(residual[backward_arc], backward)

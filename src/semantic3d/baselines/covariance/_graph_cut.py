@@ -21,7 +21,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from semantic3d.baselines.covariance._context_kernels import expansion_capacities
+from semantic3d.baselines.covariance._context_kernels import expansion_arcs
 
 _FREE = -1  # no parent: the node is in neither search tree
 _TERMINAL = -2  # the parent is the tree's terminal
@@ -35,16 +35,25 @@ def _wrap(position: int, n: int) -> int:  # pragma: no cover - compiled
     return position - n if position >= n else position
 
 
+def index_type(n: int, n_edges: int) -> np.ndarray:
+    """An empty array of the integer type that numbers the nodes and arcs of a graph of
+    ``n`` nodes and ``n_edges`` edges: int32 where both fit (it halves the memory the
+    search reads at random; the cut is the same), else int64."""
+    fits = max(n, 2 * n_edges) < np.iinfo(np.int32).max
+    return np.empty(0, np.int32 if fits else np.int64)
+
+
 @nb.njit(cache=True, nogil=True)
 def arc_layout(
-    n: int, first: np.ndarray, second: np.ndarray
+    n: int, first: np.ndarray, second: np.ndarray, index: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover
     """Arcs of the undirected edges ``(first[e], second[e])`` in compressed rows.
 
     Returns ``(row_start, head, sister, forward, backward)``: the arcs leaving node ``i``
     are ``row_start[i]:row_start[i + 1]`` (newest edge first, as the reference inserts
     them), ``head[a]`` is where arc ``a`` goes and ``sister[a]`` its reverse; edge ``e``'s
-    arc from ``first[e]`` is ``forward[e]`` and the one back is ``backward[e]``.
+    arc from ``first[e]`` is ``forward[e]`` and the one back is ``backward[e]``. All but
+    ``row_start`` have ``index``'s integer type (:func:`index_type`).
     """
     m = first.size
     row_start = np.zeros(n + 1, np.int64)
@@ -54,10 +63,10 @@ def arc_layout(
     for i in range(n):
         row_start[i + 1] += row_start[i]
     fill = row_start[:n].copy()
-    head = np.empty(2 * m, np.int64)
-    sister = np.empty(2 * m, np.int64)
-    forward = np.empty(m, np.int64)
-    backward = np.empty(m, np.int64)
+    head = np.empty(2 * m, index.dtype)
+    sister = np.empty(2 * m, index.dtype)
+    forward = np.empty(m, index.dtype)
+    backward = np.empty(m, index.dtype)
     for e in range(m - 1, -1, -1):
         i = first[e]
         j = second[e]
@@ -95,20 +104,21 @@ def max_flow(
             no tree, are on the source's side).
     """
     n = terminal.size
-    parent = np.empty(n, np.int64)
+    # node and arc numbers in the arcs' integer type (int32 for any tile: less to fetch)
+    parent = np.empty(n, head.dtype)
     in_sink_tree = np.zeros(n, np.bool_)
     stamp = np.zeros(n, np.int64)
-    distance = np.ones(n, np.int64)
+    distance = np.ones(n, head.dtype)
     queued = np.zeros(n, np.bool_)
     # active nodes, first in first out (a ring: a node is queued at most once at a time)
-    queue = np.empty(max(n, 1), np.int64)
+    queue = np.empty(max(n, 1), head.dtype)
     queue_head = 0
     queue_size = 0
     # orphans of one augmentation (taken last found first) and of one adoption cascade
     # (first in first out, a ring: an orphan is queued at most once at a time)
-    found_orphans = np.empty(max(n, 1), np.int64)
+    found_orphans = np.empty(max(n, 1), head.dtype)
     n_found = 0
-    cascade = np.empty(max(n, 1), np.int64)
+    cascade = np.empty(max(n, 1), head.dtype)
 
     for i in range(n):
         if terminal[i] > 0 or terminal[i] < 0:
@@ -324,29 +334,26 @@ def expand_labels(
     labels: np.ndarray,
     weight: float,
     max_sweeps: int,
+    index: np.ndarray,
 ) -> np.ndarray:  # pragma: no cover - compiled
     """Alpha-expansion of ``labels`` (``(n,)`` int64 columns of ``unary``) under the Potts
     energy ``sum unary[i, l_i] + weight * (edges whose ends differ)``; see
     :func:`~semantic3d.baselines.covariance.context.alpha_expansion`, which checks the
-    arguments. A move is kept when it lowers the energy by more than 1e-9."""
+    arguments. A move is kept when it lowers the energy by more than 1e-9. ``index``: an
+    empty array of the graph's index type (:func:`index_type`)."""
     n, n_labels = unary.shape
     m = first.size
     current = labels.copy()
-    row_start, head, sister, forward, backward = arc_layout(n, first, second)
+    row_start, head, sister, forward, backward = arc_layout(n, first, second, index)
     residual = np.empty(2 * m, np.float64)
     terminal = np.empty(n, np.float64)
     take = np.empty(n, np.bool_)
-    forward_cap = np.empty(m, np.float64)
-    backward_cap = np.empty(m, np.float64)
     for _ in range(max_sweeps):
         changed = False
         for alpha in range(n_labels):
-            expansion_capacities(
-                unary, first, second, current, alpha, weight, terminal, forward_cap, backward_cap
+            expansion_arcs(
+                unary, first, second, current, alpha, weight, terminal, forward, backward, residual
             )
-            for e in range(m):
-                residual[forward[e]] = forward_cap[e]
-                residual[backward[e]] = backward_cap[e]
             max_flow(row_start, head, sister, residual, terminal, take)
             # the energy change of the move, exactly as a difference of its two terms
             data = 0.0

@@ -178,7 +178,7 @@ def alpha_expansion(
         raise ShapeError(f"edges: expected pairs of two different nodes in 0..{n - 1}")
     if current.min() < 0 or current.max() >= unary.shape[1]:
         raise ShapeError(f"labels: expected columns in 0..{unary.shape[1] - 1}")
-    from semantic3d.baselines.covariance._graph_cut import expand_labels
+    from semantic3d.baselines.covariance._graph_cut import expand_labels, index_type
 
     expanded: NDArray[np.int64] = expand_labels(
         np.ascontiguousarray(unary),
@@ -187,6 +187,7 @@ def alpha_expansion(
         current,
         float(weight),
         int(max_sweeps),
+        index_type(n, edges.shape[0]),
     )
     return expanded
 
