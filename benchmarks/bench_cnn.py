@@ -38,7 +38,6 @@ import copy
 import dataclasses
 import json
 import os
-import resource
 import subprocess
 import sys
 import tempfile
@@ -48,6 +47,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _harness import peak_rss_mb
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "out"
@@ -447,7 +449,7 @@ def child_predict(folder: str, device: str, options: str) -> None:
         cpu, wall = time.process_time(), time.perf_counter()
         result = predict_scans(model, scans, Path(scratch) / "out")
         wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    peak = peak_rss_mb()  # VmHWM: ru_maxrss would hold the parent's size at the fork
     measured = _rate(result.n_points, wall, cpu)
     measured.update(
         scans=len(scans), peak_rss_mb=peak, compiled=model.inference.compiled, options=options

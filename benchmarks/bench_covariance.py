@@ -33,7 +33,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import os
-import resource
 import shutil
 import subprocess
 import sys
@@ -60,6 +59,9 @@ from semantic3d.io.ascii import read_ascii_points, write_ascii_points
 from semantic3d.io.labels import read_labels
 from semantic3d.metrics import ConfusionMatrix
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _harness import peak_rss_mb
+
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
 NINE = [
@@ -83,7 +85,7 @@ def rate(n: int, seconds: float) -> str:
 
 
 def peak_rss_mib() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    return peak_rss_mb()  # VmHWM: a child's ru_maxrss holds its parent's size at the fork
 
 
 def interleaved(repeat: int, contenders: dict[str, Callable[[], Any]]) -> dict[str, float]:
@@ -266,7 +268,9 @@ def bench_memory(data: Path, model_path: Path) -> None:
             path = Path(tmp) / f"x{copies}.txt"
             write_ascii_points(path, parts)
             code = (
-                "import resource, dataclasses;"
+                f"import sys; sys.path.insert(0, {str(Path(__file__).resolve().parent)!r});"
+                "import dataclasses;"
+                "from _harness import peak_rss_mb;"
                 "import semantic3d.features;"
                 "from semantic3d.baselines.covariance.persistence import load_model;"
                 "from semantic3d.baselines.covariance.predict import predict_scan;"
@@ -275,8 +279,7 @@ def bench_memory(data: Path, model_path: Path) -> None:
                 " chunk_size=1 << 18);"
                 "m = dataclasses.replace(m, config=dataclasses.replace(m.config, prediction=p));"
                 f"r = predict_scan(m, {str(path)!r}, out_path={str(path) + '.labels'!r});"
-                "print(r.n_points, r.runtime_s,"
-                " resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)"
+                "print(r.n_points, r.runtime_s, int(peak_rss_mb() * 1024))"
             )
             out = subprocess.run(
                 [sys.executable, "-c", code], capture_output=True, text=True, check=True
@@ -405,7 +408,7 @@ def run_child(kind: str, model_path: Path, scans: list[Path], out: Path) -> None
         n_points,
         finished - started,
         time.process_time() - cpu,
-        resource.getrusage(resource.RUSAGE_SELF).ru_maxrss,
+        int(peak_rss_mb() * 1024),
         finished - labelling,
     )
 
