@@ -78,7 +78,8 @@ def _load(path: Path) -> tuple[np.ndarray, np.ndarray, float]:
 
 def _warm_up() -> None:
     """Load the compiled kernels and libraries before the clock starts."""
-    import maxflow  # noqa: F401
+    sys.path.insert(0, str(HERE.parents[1]))
+    import tests.baselines.covariance.test_graph_cut  # noqa: F401  (PyMaxflow's contender)
 
     from semantic3d.baselines.covariance.context import alpha_expansion, potts_energy
 
@@ -95,30 +96,10 @@ def _compiled(unary: np.ndarray, edges: np.ndarray, weight: float) -> np.ndarray
 
 
 def _pymaxflow(unary: np.ndarray, edges: np.ndarray, weight: float) -> np.ndarray:
-    import maxflow
+    # the reference the tests check the compiled cut against, moves cut by PyMaxflow
+    from tests.baselines.covariance.test_graph_cut import pymaxflow_expansion
 
-    from semantic3d.baselines.covariance._context_kernels import expansion_capacities
-    from semantic3d.baselines.covariance.context import potts_energy
-
-    n, n_labels = unary.shape
-    first, second = np.ascontiguousarray(edges[:, 0]), np.ascontiguousarray(edges[:, 1])
-    current = unary.argmin(axis=1).astype(np.int64)
-    energy = potts_energy(unary, edges, current, weight=weight)
-    terminal, forward, backward = np.empty(n), np.empty(first.size), np.empty(first.size)
-    for alpha in range(n_labels):
-        expansion_capacities(
-            unary, first, second, current, alpha, weight, terminal, forward, backward
-        )
-        graph = maxflow.Graph[float](n, first.size)
-        nodes = graph.add_nodes(n)
-        graph.add_grid_tedges(nodes, np.maximum(terminal, 0), np.maximum(-terminal, 0))
-        graph.add_edges(first, second, forward, backward)
-        graph.maxflow()
-        proposal = np.where(graph.get_grid_segments(nodes), alpha, current)
-        proposed = potts_energy(unary, edges, proposal, weight=weight)
-        if proposed < energy - 1e-9:
-            current, energy = proposal, proposed
-    return current
+    return pymaxflow_expansion(unary, edges, weight, 1)
 
 
 def _floor(unary: np.ndarray, edges: np.ndarray, weight: float) -> np.ndarray:

@@ -92,10 +92,11 @@ def test_max_flow_equals_pymaxflow_and_its_cut(graph: tuple[np.ndarray, ...]) ->
     assert cut == pytest.approx(flow, rel=1e-9, abs=1e-9)
 
 
-def _pymaxflow_expansion(
+def pymaxflow_expansion(
     unary: np.ndarray, edges: np.ndarray, weight: float, max_sweeps: int
 ) -> np.ndarray:
-    """Alpha-expansion with each move cut by PyMaxflow (as the context step was first built)."""
+    """Alpha-expansion with each move cut by PyMaxflow (as the context step was first built;
+    ``benchmarks/bench_graph_cut.py`` runs it as the library a user would call)."""
     n, n_labels = unary.shape
     first, second = np.ascontiguousarray(edges[:, 0]), np.ascontiguousarray(edges[:, 1])
     current = unary.argmin(axis=1).astype(np.int64)
@@ -137,7 +138,7 @@ def test_alpha_expansion_gives_the_labels_of_the_pymaxflow_moves(
     proba = np.exp(logits) / np.exp(logits).sum(axis=1, keepdims=True)
     unary, edges = unary_costs(proba), knn_edges(xyz, k=8)
     labels = alpha_expansion(unary, edges, weight=weight, max_sweeps=max_sweeps)
-    np.testing.assert_array_equal(labels, _pymaxflow_expansion(unary, edges, weight, max_sweeps))
+    np.testing.assert_array_equal(labels, pymaxflow_expansion(unary, edges, weight, max_sweeps))
     assert np.any(labels != unary.argmin(axis=1))  # the moves did change labels
 
 
