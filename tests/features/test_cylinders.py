@@ -95,3 +95,25 @@ def test_a_subset_of_cylinder_columns_is_the_same_values() -> None:
         assert np.array_equal(part[:, column], full[:, every.feature_names.index(name)])
     with pytest.raises(ConfigError, match="cylinder_features: expected some of"):
         FeatureConfig(cylinder_features=("cylinder_above", "cylinder_range"))
+
+
+def test_cylinders_do_not_depend_on_the_thread_count() -> None:
+    from semantic3d.core.threads import thread_limit
+
+    rng = np.random.default_rng(8)
+    # dense near the origin, sparse far away (as a scan): blocks of queries cost unequal time
+    radius = np.abs(rng.standard_cauchy(40_000)).clip(0.0, 200.0)
+    angle = rng.uniform(0.0, 2.0 * np.pi, radius.size)
+    points = np.column_stack(
+        [radius * np.cos(angle), radius * np.sin(angle), rng.uniform(0, 3, radius.size)]
+    )
+    queries = points[::7]
+    with thread_limit(1):
+        one = compute_cylinder_features(points, queries, radius_m=0.5)
+    with thread_limit(4):
+        four = compute_cylinder_features(points, queries, radius_m=0.5)
+    assert queries.shape[0] > 10 * 256  # many blocks of work
+    np.testing.assert_array_equal(one, four)
+    np.testing.assert_allclose(
+        one[:300], reference(points, queries[:300], 0.5), rtol=1e-6, atol=1e-6
+    )

@@ -26,6 +26,7 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
+from semantic3d.core._atomic import take_next
 from semantic3d.core.errors import ShapeError
 from semantic3d.features._row_kernels import take_rows
 from semantic3d.features.names import CYLINDER_FEATURES
@@ -89,6 +90,7 @@ def compute_cylinder_features(
         cell,
         radius_m,
         block,
+        numba.get_num_threads(),
     )
     if block is not out:
         out[...] = block
@@ -96,6 +98,7 @@ def compute_cylinder_features(
 
 
 _SHIFT = 31
+_QUERY_BLOCK = 256  # queries per piece of work handed to a thread
 
 
 # Hand-written: numpy's floor, casts and shifts are passes over the level on one thread;
@@ -127,40 +130,67 @@ def _cylinder_kernel(
     cell: float,
     radius_m: float,
     out: NDArray[np.float32],
+    n_threads: int,
 ) -> None:  # pragma: no cover - compiled
+    m = queries.shape[0]
+    n_blocks = (m + _QUERY_BLOCK - 1) // _QUERY_BLOCK
+    taken = np.zeros(1, np.int64)
+    # blocks taken as threads come free: a query costs the points around it (dense near
+    # the scanner, sparse far away), so equal shares of the queries are not equal work
+    for _ in numba.prange(max(1, min(n_threads, n_blocks))):
+        while True:
+            block = take_next(taken)
+            if block >= n_blocks:
+                break
+            for row in range(block * _QUERY_BLOCK, min(m, (block + 1) * _QUERY_BLOCK)):
+                _cylinder(points, cell_codes, starts, queries, origin, cell, radius_m, out, row)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _cylinder(
+    points: NDArray[np.float64],
+    cell_codes: NDArray[np.int64],
+    starts: NDArray[np.int64],
+    queries: NDArray[np.float64],
+    origin: NDArray[np.float64],
+    cell: float,
+    radius_m: float,
+    out: NDArray[np.float32],
+    row: int,
+) -> None:  # pragma: no cover - compiled
+    """The columns of query ``row``: the points within ``radius_m`` of it in x and y."""
     squared = radius_m * radius_m
-    for row in numba.prange(queries.shape[0]):
-        qx = queries[row, 0]
-        qy = queries[row, 1]
-        qz = queries[row, 2]
-        cx = math.floor((qx - origin[0]) / cell)
-        cy = math.floor((qy - origin[1]) / cell)
-        low = np.inf
-        high = -np.inf
-        count = 0
-        for dx in range(-1, 2):
-            if cx + dx < 0 or cy + 1 < 0:
-                continue
-            # cells (cx + dx, cy - 1 .. cy + 1) have consecutive codes: one search finds
-            # the first of them present, the entries after it are the others present
-            first = ((cx + dx) << _SHIFT) | max(cy - 1, 0)
-            last = ((cx + dx) << _SHIFT) | (cy + 1)
-            j = np.searchsorted(cell_codes, first)
-            while j < cell_codes.size and cell_codes[j] <= last:
-                for p in range(starts[j], starts[j + 1]):
-                    ex = points[p, 0] - qx
-                    ey = points[p, 1] - qy
-                    if ex * ex + ey * ey <= squared:
-                        z = points[p, 2]
-                        low = min(low, z)
-                        high = max(high, z)
-                        count += 1
-                j += 1
-        if count == 0:
-            for c in range(4):
-                out[row, c] = 0.0
-        else:
-            out[row, 0] = high - low
-            out[row, 1] = qz - low
-            out[row, 2] = high - qz
-            out[row, 3] = count
+    qx = queries[row, 0]
+    qy = queries[row, 1]
+    qz = queries[row, 2]
+    cx = math.floor((qx - origin[0]) / cell)
+    cy = math.floor((qy - origin[1]) / cell)
+    low = np.inf
+    high = -np.inf
+    count = 0
+    for dx in range(-1, 2):
+        if cx + dx < 0 or cy + 1 < 0:
+            continue
+        # cells (cx + dx, cy - 1 .. cy + 1) have consecutive codes: one search finds
+        # the first of them present, the entries after it are the others present
+        first = ((cx + dx) << _SHIFT) | max(cy - 1, 0)
+        last = ((cx + dx) << _SHIFT) | (cy + 1)
+        j = np.searchsorted(cell_codes, first)
+        while j < cell_codes.size and cell_codes[j] <= last:
+            for p in range(starts[j], starts[j + 1]):
+                ex = points[p, 0] - qx
+                ey = points[p, 1] - qy
+                if ex * ex + ey * ey <= squared:
+                    z = points[p, 2]
+                    low = min(low, z)
+                    high = max(high, z)
+                    count += 1
+            j += 1
+    if count == 0:
+        for c in range(4):
+            out[row, c] = 0.0
+    else:
+        out[row, 0] = high - low
+        out[row, 1] = qz - low
+        out[row, 2] = high - qz
+        out[row, 3] = count

@@ -44,6 +44,7 @@ from llvmlite import ir
 from numba.core import cgutils, types
 from numba.extending import intrinsic
 
+from semantic3d.core._atomic import take_next
 from semantic3d.io._point_text import (  # problem codes: one definition for both parsers
     BAD_NUMBER,
     COLUMN_COUNT,
@@ -478,8 +479,11 @@ def parse_window(
     rgb: np.ndarray,
     slow: np.ndarray,
     state: np.ndarray,
+    n_threads: int,
 ) -> tuple[int, int, int]:  # pragma: no cover - compiled
-    """Parse the segments ``bounds[s]:bounds[s + 1]`` of a window, each on its own thread.
+    """Parse the segments ``bounds[s]:bounds[s + 1]`` of a window on ``n_threads`` threads,
+    each thread taking the next segment as it comes free (:func:`take_next`: equal bytes
+    are not equal time on a loaded machine).
 
     Counts the lines of every segment (in parallel); when they are more than ``room``
     rows, the window is cut after the ``room``-th line (only the segment holding the cut
@@ -491,8 +495,13 @@ def parse_window(
     """
     n = bounds.shape[0] - 1
     counts = np.empty(n, np.int64)
-    for s in nb.prange(n):
-        counts[s] = count_lines(buf, bounds[s], bounds[s + 1])
+    taken = np.zeros(2, np.int64)  # segments handed out: counted, then parsed
+    for _ in nb.prange(max(1, min(n_threads, n))):
+        while True:
+            s = take_next(taken[0:1])
+            if s >= n:
+                break
+            counts[s] = count_lines(buf, bounds[s], bounds[s + 1])
     total = 0
     for s in range(n):
         total += counts[s]
@@ -511,15 +520,19 @@ def parse_window(
     for s in range(n):
         rows[s] = row
         row += counts[s]
-    for s in nb.prange(n):
-        status, pos, last, n_slow = _run(
-            buf, readable, bounds[s], bounds[s + 1], rows[s], xyz, intensity, rgb, slow[s], 0
-        )
-        state[s, STATE_STATUS] = status
-        state[s, STATE_POS] = pos
-        state[s, STATE_ROW] = last
-        state[s, STATE_SLOW] = n_slow
-        state[s, STATE_END] = bounds[s + 1]
+    for _ in nb.prange(max(1, min(n_threads, n))):
+        while True:
+            s = take_next(taken[1:2])
+            if s >= n:
+                break
+            status, pos, last, n_slow = _run(
+                buf, readable, bounds[s], bounds[s + 1], rows[s], xyz, intensity, rgb, slow[s], 0
+            )
+            state[s, STATE_STATUS] = status
+            state[s, STATE_POS] = pos
+            state[s, STATE_ROW] = last
+            state[s, STATE_SLOW] = n_slow
+            state[s, STATE_END] = bounds[s + 1]
     return total, n, bounds[n]
 
 

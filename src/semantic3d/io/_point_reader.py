@@ -135,6 +135,7 @@ class _Reader:
             batch.rgb,
             self.slow,
             self.state,
+            numba.get_num_threads(),
         )
         state = self.state[:n_segments]
         if state[:, kernels.STATE_STATUS].any() or state[:, kernels.STATE_SLOW].any():

@@ -23,6 +23,7 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
+from semantic3d.core._atomic import take_next
 from semantic3d.core.errors import ShapeError
 
 __all__ = ["KdTree"]
@@ -85,6 +86,7 @@ class KdTree:
             queries,
             indices,
             squared,
+            numba.get_num_threads(),
         )
         return indices, squared
 
@@ -303,29 +305,36 @@ def _query(
     queries: Any,
     indices: Any,
     squared: Any,
+    n_threads: int,
 ) -> None:  # pragma: no cover - compiled
     m, k = indices.shape
     n_blocks = (m + _QUERY_BLOCK - 1) // _QUERY_BLOCK
-    for block in numba.prange(n_blocks):
+    taken = np.zeros(1, np.int64)
+    # blocks taken as threads come free: a search costs more where points crowd or tie
+    for _ in numba.prange(max(1, min(n_threads, n_blocks))):
         best_d = np.empty(k, np.float32)
         best_i = np.empty(k, np.int64)
         stack = np.empty(depth + 2, np.int64)
         stack_d = np.empty((depth + 2, 4), np.float64)
-        for row in range(block * _QUERY_BLOCK, min(m, (block + 1) * _QUERY_BLOCK)):
-            _search(
-                points,
-                order,
-                bounds,
-                boxes,
-                axes,
-                depth,
-                queries[row],
-                k,
-                best_d,
-                best_i,
-                stack,
-                stack_d,
-            )
-            for a in range(k):
-                indices[row, a] = best_i[a]
-                squared[row, a] = best_d[a]
+        while True:
+            block = take_next(taken)
+            if block >= n_blocks:
+                break
+            for row in range(block * _QUERY_BLOCK, min(m, (block + 1) * _QUERY_BLOCK)):
+                _search(
+                    points,
+                    order,
+                    bounds,
+                    boxes,
+                    axes,
+                    depth,
+                    queries[row],
+                    k,
+                    best_d,
+                    best_i,
+                    stack,
+                    stack_d,
+                )
+                for a in range(k):
+                    indices[row, a] = best_i[a]
+                    squared[row, a] = best_d[a]
