@@ -630,33 +630,44 @@ MAX_LINE_BYTES = 3 * 31 + 12 + 3 * 4 + 1
 
 @nb.njit(cache=True, nogil=True, parallel=True)
 def format_points(
-    xyz: np.ndarray, intensity: np.ndarray, rgb: np.ndarray, decimals: int, n_segments: int
+    xyz: np.ndarray,
+    intensity: np.ndarray,
+    rgb: np.ndarray,
+    decimals: int,
+    n_segments: int,
+    n_threads: int,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Format rows as text in ``n_segments`` parallel buffers; return ``(buffers, used)``.
+    """Format rows as text in ``n_segments`` buffers on ``n_threads`` threads (each takes
+    the next segment as it comes free); return ``(buffers, used)``.
 
     The caller writes ``buffers[s, :used[s]]`` in order; the bytes do not depend on the
-    number of threads, so output is deterministic.
+    number of segments or threads, so output is deterministic.
     """
     n = xyz.shape[0]
     per_segment = (n + n_segments - 1) // n_segments
     buffers = np.empty((n_segments, max(per_segment, 1) * MAX_LINE_BYTES), np.uint8)
     used = np.zeros(n_segments, np.int64)
     scale = 10.0**decimals
-    for s in nb.prange(n_segments):
-        out = buffers[s]
-        pos = 0
-        for i in range(s * per_segment, min(n, (s + 1) * per_segment)):
-            for column in range(3):
-                pos = _write_fixed(out, pos, xyz[i, column], decimals, scale)
-                out[pos] = 32
+    taken = np.zeros(1, np.int64)
+    for _ in nb.prange(max(1, min(n_threads, n_segments))):
+        while True:
+            s = take_next(taken)
+            if s >= n_segments:
+                break
+            out = buffers[s]
+            pos = 0
+            for i in range(s * per_segment, min(n, (s + 1) * per_segment)):
+                for column in range(3):
+                    pos = _write_fixed(out, pos, xyz[i, column], decimals, scale)
+                    out[pos] = 32
+                    pos += 1
+                pos = _write_int(out, pos, np.int64(intensity[i]))
+                for column in range(3):
+                    out[pos] = 32
+                    pos = _write_int(out, pos + 1, np.int64(rgb[i, column]))
+                out[pos] = 10
                 pos += 1
-            pos = _write_int(out, pos, np.int64(intensity[i]))
-            for column in range(3):
-                out[pos] = 32
-                pos = _write_int(out, pos + 1, np.int64(rgb[i, column]))
-            out[pos] = 10
-            pos += 1
-        used[s] = pos
+            used[s] = pos
     return buffers, used
 
 

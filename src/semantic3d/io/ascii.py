@@ -147,13 +147,16 @@ class AsciiPointWriter(StagedWriter):
                 f"{self._limit:.3g} m, found {xyz[bad].tolist()}",
                 path=str(self.path),
             )
-        n_segments = max(1, min(numba.get_num_threads(), batch.n_points // 4096))
+        n_threads = numba.get_num_threads()
+        # several segments a thread, taken as threads come free: the end waits for less
+        n_segments = max(1, min(4 * n_threads, batch.n_points // 4096))
         buffers, used = kernels.format_points(
             xyz,
             np.ascontiguousarray(batch.intensity),
             np.ascontiguousarray(batch.rgb),
             self.decimals,
             n_segments,
+            n_threads,
         )
         for segment in range(n_segments):
             self._stream.write(buffers[segment, : used[segment]].data)

@@ -18,6 +18,7 @@ import math
 from collections.abc import Iterator
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -303,6 +304,7 @@ def _cast_columns(
         scanner.min_range_m,
         scanner.max_range_m,
         *compiled.kernel_arguments(),
+        numba.get_num_threads(),
     )
     return sweep_cast_kernel(*arguments)
 
@@ -319,15 +321,18 @@ def _shade(
     returned: NDArray[np.intp],
 ) -> PointCloud:
     directions, times, ray_ids = sweep_rays_kernel(returned, first, *angles.kernel_arguments())
-    xyz, intensity, rgb, labels = shade_kernel(
+    arguments = (
         np.asarray(station.position, np.float64),
         directions,
-        distance[returned],
-        hit[returned],
+        distance,
+        hit,
+        returned,
         times,
         ray_ids,
         key,
         scanner.range_noise_m,
         *compiled.shade_arguments(),
+        numba.get_num_threads(),
     )
+    xyz, intensity, rgb, labels = shade_kernel(*arguments)
     return PointCloud(xyz, intensity, rgb, labels)

@@ -18,6 +18,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from semantic3d.core._atomic import take_next
 from semantic3d.datasets.simulator.kernels import (
     HIT_GROUND,
     STREAM_COLOUR,
@@ -103,12 +104,16 @@ def approximate_normal(key: np.uint64, ray_id: np.uint64, stream: np.uint64) -> 
     return (total - 131070.0) * (1.0 / 37837.23)
 
 
+_POINT_BLOCK = 1024  # points per piece of work handed to a thread
+
+
 @njit(cache=True, nogil=True, parallel=True)
 def shade_kernel(
     origin: np.ndarray,
     directions: np.ndarray,
     distance: np.ndarray,
     hit: np.ndarray,
+    returned: np.ndarray,
     times: np.ndarray,
     ray_ids: np.ndarray,
     key: np.uint64,
@@ -125,73 +130,93 @@ def shade_kernel(
     params: np.ndarray,
     shapes: np.ndarray,
     labels: np.ndarray,
+    n_threads: int,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Points, intensities, colours and labels of hits (every ray given must have a hit)."""
+    """Points, intensities, colours and labels of the hits of rays ``returned`` (indices
+    into ``distance`` and ``hit``; ``directions``, ``times`` and ``ray_ids`` are theirs, in
+    that order), on ``n_threads`` threads."""
     n = directions.shape[0]
     xyz = np.empty((n, 3), np.float64)
     intensity = np.empty(n, np.int32)
     rgb = np.empty((n, 3), np.uint8)
     out_labels = np.empty(n, np.uint8)
     sun_x, sun_y, sun_z = _SUN[0], _SUN[1], _SUN[2]
-    for k in prange(n):
-        dx = directions[k, 0]
-        dy = directions[k, 1]
-        dz = directions[k, 2]
-        t = distance[k]
-        ray = ray_ids[k]
-        x = origin[0] + t * dx
-        y = origin[1] + t * dy
-        z = origin[2] + t * dz
-        h = hit[k]
-        if h == HIT_GROUND:
-            nx, ny, nz = terrain_normal(terrain, x, y)
-            table = zones
-            row = zone_at(
-                zones, x, y, zone_origin, zone_cell, zone_nx, zone_ny, zone_start, zone_items
-            )
-            start = Z_RGB
-            label = zone_labels[row]
-        else:
-            table = params
-            row = h
-            start = P_RGB
-            label = labels[h]
-            if params[h, P_DENSITY] > 0.0:
-                # A leaf: random orientation, facing the scanner.
-                cz = 2.0 * uniform(key, ray, STREAM_NORMAL) - 1.0
-                phi = 2.0 * math.pi * uniform(key, ray, STREAM_NORMAL + np.uint64(1))
-                sz = math.sqrt(max(0.0, 1.0 - cz * cz))
-                nx, ny, nz = sz * math.cos(phi), sz * math.sin(phi), cz
-            else:
-                nx, ny, nz = primitive_normal(params, shapes, h, x, y, z, times[k])
-        cos_incidence = -(nx * dx + ny * dy + nz * dz)
-        if cos_incidence < 0.0:
-            nx, ny, nz = -nx, -ny, -nz
-            cos_incidence = -cos_incidence
-        # Range noise along the ray.
-        t_noisy = t + range_noise_m * normal_deviate(key, ray, STREAM_RANGE)
-        xyz[k, 0] = origin[0] + t_noisy * dx
-        xyz[k, 1] = origin[1] + t_noisy * dy
-        xyz[k, 2] = origin[2] + t_noisy * dz
-        # Intensity from reflectance, incidence and range.
-        r_rel = t / INTENSITY_HALF_RANGE_M
-        value = table[row, start + 3] * (0.2 + 0.8 * cos_incidence) / (1.0 + r_rel * r_rel)
-        value += INTENSITY_NOISE * approximate_normal(key, ray, STREAM_INTENSITY)
-        value = min(1.0, max(0.0, value))
-        intensity[k] = INTENSITY_MIN + round(value * (INTENSITY_MAX - INTENSITY_MIN))
-        # Colour: base x texture x sun + noise.
-        inv_scale = 1.0 / table[row, start + 5]
-        coarse = lattice_noise(_TEXTURE_KEY, x, y, z, inv_scale) - 0.5
-        fine = lattice_noise(_DETAIL_KEY, x, y, z, 4.0 * inv_scale) - 0.5
-        texture = 1.0 + table[row, start + 4] * (1.4 * coarse + 0.6 * fine)
-        sun = 0.7 + 0.3 * max(0.0, nx * sun_x + ny * sun_y + nz * sun_z)
-        for channel in range(3):
-            noise = table[row, start + 6] * normal_deviate(
-                key, ray, STREAM_COLOUR + np.uint64(channel)
-            )
-            value = table[row, start + channel] * texture * sun + noise
-            rgb[k, channel] = np.uint8(min(255.0, max(0.0, round(value))))
-        out_labels[k] = label
+    n_blocks = (n + _POINT_BLOCK - 1) // _POINT_BLOCK
+    taken = np.zeros(1, np.int64)
+    # blocks of points taken as threads come free: ground and each kind of primitive
+    # cost their own time, so equal shares of the points are not equal work
+    for _ in prange(max(1, min(n_threads, n_blocks))):
+        while True:
+            block = take_next(taken)
+            if block >= n_blocks:
+                break
+            for k in range(block * _POINT_BLOCK, min(n, (block + 1) * _POINT_BLOCK)):
+                dx = directions[k, 0]
+                dy = directions[k, 1]
+                dz = directions[k, 2]
+                t = distance[returned[k]]
+                ray = ray_ids[k]
+                x = origin[0] + t * dx
+                y = origin[1] + t * dy
+                z = origin[2] + t * dz
+                h = hit[returned[k]]
+                if h == HIT_GROUND:
+                    nx, ny, nz = terrain_normal(terrain, x, y)
+                    table = zones
+                    row = zone_at(
+                        zones,
+                        x,
+                        y,
+                        zone_origin,
+                        zone_cell,
+                        zone_nx,
+                        zone_ny,
+                        zone_start,
+                        zone_items,
+                    )
+                    start = Z_RGB
+                    label = zone_labels[row]
+                else:
+                    table = params
+                    row = h
+                    start = P_RGB
+                    label = labels[h]
+                    if params[h, P_DENSITY] > 0.0:
+                        # A leaf: random orientation, facing the scanner.
+                        cz = 2.0 * uniform(key, ray, STREAM_NORMAL) - 1.0
+                        phi = 2.0 * math.pi * uniform(key, ray, STREAM_NORMAL + np.uint64(1))
+                        sz = math.sqrt(max(0.0, 1.0 - cz * cz))
+                        nx, ny, nz = sz * math.cos(phi), sz * math.sin(phi), cz
+                    else:
+                        nx, ny, nz = primitive_normal(params, shapes, h, x, y, z, times[k])
+                cos_incidence = -(nx * dx + ny * dy + nz * dz)
+                if cos_incidence < 0.0:
+                    nx, ny, nz = -nx, -ny, -nz
+                    cos_incidence = -cos_incidence
+                # Range noise along the ray.
+                t_noisy = t + range_noise_m * normal_deviate(key, ray, STREAM_RANGE)
+                xyz[k, 0] = origin[0] + t_noisy * dx
+                xyz[k, 1] = origin[1] + t_noisy * dy
+                xyz[k, 2] = origin[2] + t_noisy * dz
+                # Intensity from reflectance, incidence and range.
+                r_rel = t / INTENSITY_HALF_RANGE_M
+                value = table[row, start + 3] * (0.2 + 0.8 * cos_incidence) / (1.0 + r_rel * r_rel)
+                value += INTENSITY_NOISE * approximate_normal(key, ray, STREAM_INTENSITY)
+                value = min(1.0, max(0.0, value))
+                intensity[k] = INTENSITY_MIN + round(value * (INTENSITY_MAX - INTENSITY_MIN))
+                # Colour: base x texture x sun + noise.
+                inv_scale = 1.0 / table[row, start + 5]
+                coarse = lattice_noise(_TEXTURE_KEY, x, y, z, inv_scale) - 0.5
+                fine = lattice_noise(_DETAIL_KEY, x, y, z, 4.0 * inv_scale) - 0.5
+                texture = 1.0 + table[row, start + 4] * (1.4 * coarse + 0.6 * fine)
+                sun = 0.7 + 0.3 * max(0.0, nx * sun_x + ny * sun_y + nz * sun_z)
+                for channel in range(3):
+                    noise = table[row, start + 6] * normal_deviate(
+                        key, ray, STREAM_COLOUR + np.uint64(channel)
+                    )
+                    value = table[row, start + channel] * texture * sun + noise
+                    rgb[k, channel] = np.uint8(min(255.0, max(0.0, round(value))))
+                out_labels[k] = label
     return xyz, intensity, rgb, out_labels
 
 

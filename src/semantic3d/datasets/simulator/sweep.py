@@ -17,6 +17,7 @@ import numpy as np
 from numba import njit, prange
 from numpy.typing import NDArray
 
+from semantic3d.core._atomic import take_next
 from semantic3d.datasets.simulator.kernels import INF, NO_HIT
 from semantic3d.datasets.simulator.raycast import trace_ray
 
@@ -70,6 +71,9 @@ class SweepAngles:
         )
 
 
+_RAY_BLOCK = 1024  # rays per piece of work handed to a thread
+
+
 @njit(cache=True, nogil=True, parallel=True)
 def sweep_cast_kernel(
     origin: np.ndarray,
@@ -97,48 +101,59 @@ def sweep_cast_kernel(
     cell_zmin: np.ndarray,
     cell_zmax: np.ndarray,
     grid_zmax: float,
+    n_threads: int,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Distances and hit ids of the rays of columns ``first .. first + columns``."""
+    """Distances and hit ids of the rays of columns ``first .. first + columns``, on
+    ``n_threads`` threads."""
     n_elevation = cos_elevation.shape[0]
     n_azimuth = cos_azimuth.shape[0]
     n = columns * n_elevation
     distance = np.empty(n, np.float64)
     hit = np.empty(n, np.int32)
-    for k in prange(n):
-        c = k // n_elevation
-        i = k - c * n_elevation
-        j = first + c
-        time = start_time + sweep_duration * j / n_azimuth
-        t, h = trace_ray(
-            origin[0],
-            origin[1],
-            origin[2],
-            cos_elevation[i] * cos_azimuth[j],
-            cos_elevation[i] * sin_azimuth[j],
-            sin_elevation[i],
-            time,
-            key,
-            np.uint64(j * n_elevation + i),
-            max_range,
-            terrain,
-            params,
-            shapes,
-            bounds,
-            grid_origin,
-            cell,
-            nx,
-            ny,
-            cell_start,
-            cell_items,
-            cell_zmin,
-            cell_zmax,
-            grid_zmax,
-        )
-        if h == NO_HIT or t < min_range:
-            t = INF
-            h = NO_HIT
-        distance[k] = t
-        hit[k] = h
+    n_blocks = (n + _RAY_BLOCK - 1) // _RAY_BLOCK
+    taken = np.zeros(1, np.int64)
+    # blocks of rays taken as threads come free: a ray into open space crosses many grid
+    # cells, one into a wall few, so equal shares of the columns are not equal work
+    for _ in prange(max(1, min(n_threads, n_blocks))):
+        while True:
+            block = take_next(taken)
+            if block >= n_blocks:
+                break
+            for k in range(block * _RAY_BLOCK, min(n, (block + 1) * _RAY_BLOCK)):
+                c = k // n_elevation
+                i = k - c * n_elevation
+                j = first + c
+                time = start_time + sweep_duration * j / n_azimuth
+                t, h = trace_ray(
+                    origin[0],
+                    origin[1],
+                    origin[2],
+                    cos_elevation[i] * cos_azimuth[j],
+                    cos_elevation[i] * sin_azimuth[j],
+                    sin_elevation[i],
+                    time,
+                    key,
+                    np.uint64(j * n_elevation + i),
+                    max_range,
+                    terrain,
+                    params,
+                    shapes,
+                    bounds,
+                    grid_origin,
+                    cell,
+                    nx,
+                    ny,
+                    cell_start,
+                    cell_items,
+                    cell_zmin,
+                    cell_zmax,
+                    grid_zmax,
+                )
+                if h == NO_HIT or t < min_range:
+                    t = INF
+                    h = NO_HIT
+                distance[k] = t
+                hit[k] = h
     return distance, hit
 
 
