@@ -37,8 +37,8 @@ def _wrap(position: int, n: int) -> int:  # pragma: no cover - compiled
 
 def index_type(n: int, n_edges: int) -> np.ndarray:
     """An empty array of the integer type that numbers the nodes and arcs of a graph of
-    ``n`` nodes and ``n_edges`` edges: int32 where both fit (it halves the memory the
-    search reads at random; the cut is the same), else int64."""
+    ``n`` nodes and ``n_edges`` edges: int32 where both fit (half the size of the index
+    arrays the search reads at random; the cut is the same), else int64."""
     fits = max(n, 2 * n_edges) < np.iinfo(np.int32).max
     return np.empty(0, np.int32 if fits else np.int64)
 
