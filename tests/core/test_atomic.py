@@ -7,7 +7,7 @@ import numba
 import numpy as np
 import pytest
 
-from semantic3d.core._atomic import take_next
+from semantic3d.core.atomic import take_next
 
 
 @numba.njit(parallel=True, cache=False)

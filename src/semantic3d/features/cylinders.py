@@ -26,7 +26,7 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
-from semantic3d.core._atomic import take_next
+from semantic3d.core.atomic import take_next
 from semantic3d.core.errors import ShapeError
 from semantic3d.features._row_kernels import take_rows
 from semantic3d.features.names import CYLINDER_FEATURES

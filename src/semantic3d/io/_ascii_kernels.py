@@ -44,7 +44,7 @@ from llvmlite import ir
 from numba.core import cgutils, types
 from numba.extending import intrinsic
 
-from semantic3d.core._atomic import take_next
+from semantic3d.core.atomic import take_next
 from semantic3d.io._point_text import (  # problem codes: one definition for both parsers
     BAD_NUMBER,
     COLUMN_COUNT,

@@ -23,7 +23,7 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
-from semantic3d.core._atomic import take_next
+from semantic3d.core.atomic import take_next
 from semantic3d.core.errors import ShapeError
 
 __all__ = ["KdTree"]

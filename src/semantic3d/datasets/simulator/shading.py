@@ -18,7 +18,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from semantic3d.core._atomic import take_next
+from semantic3d.core.atomic import take_next
 from semantic3d.datasets.simulator.kernels import (
     HIT_GROUND,
     STREAM_COLOUR,

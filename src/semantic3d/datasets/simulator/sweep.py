@@ -17,7 +17,7 @@ import numpy as np
 from numba import njit, prange
 from numpy.typing import NDArray
 
-from semantic3d.core._atomic import take_next
+from semantic3d.core.atomic import take_next
 from semantic3d.datasets.simulator.kernels import INF, NO_HIT
 from semantic3d.datasets.simulator.raycast import trace_ray
 
