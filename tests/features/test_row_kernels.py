@@ -17,7 +17,6 @@ from semantic3d.features._row_kernels import (
     put_values,
     rows_in_box,
     rows_of_keys,
-    scatter_rows,
     store_keys,
     take_rows,
 )
@@ -110,7 +109,7 @@ def test_copies_and_gathers_equal_numpy(n: int) -> None:
         leading = leading_columns(found, 10)
         assert leading.flags.c_contiguous
         np.testing.assert_array_equal(leading, found[:, :10])
-        scatter_rows(block, inverse, table[:, 4:8])  # a column slice
+        put_rows(block, inverse, table[:, 4:8], 0)  # a column slice
         copy_rows(block, table[:100, 8:12])
         copy_rows(found[:, :10], wide[:50, 2:12])  # uint32 into int64
     np.testing.assert_array_equal(table[:, 4:8], block[inverse])

@@ -21,7 +21,6 @@ __all__ = [
     "put_values",
     "rows_in_box",
     "rows_of_keys",
-    "scatter_rows",
     "store_keys",
     "take_rows",
 ]
@@ -35,38 +34,17 @@ def copy_rows(block: NDArray[np.generic], out: NDArray[np.generic]) -> None:  # 
             out[row, column] = block[row, column]
 
 
-@numba.njit(cache=True, nogil=True, parallel=True)
-def scatter_rows(
-    block: NDArray[np.float32], inverse: NDArray[np.int64], out: NDArray[np.float32]
-) -> None:  # pragma: no cover - compiled
-    """``out[:] = block[inverse]``, each row written once (no ``(m, w)`` temporary)."""
-    for row in numba.prange(inverse.size):
-        source = inverse[row]
-        for column in range(block.shape[1]):
-            out[row, column] = block[source, column]
-
-
-@numba.njit(cache=True, nogil=True, parallel=True)
-def take_rows(
-    source: NDArray[np.float64], rows: NDArray[np.int64]
-) -> NDArray[np.float64]:  # pragma: no cover - compiled
-    """``source[rows]`` for a 2-D ``source``."""
+def take_rows(source: NDArray[np.float64], rows: NDArray[np.intp]) -> NDArray[np.float64]:
+    """``source[rows]`` for a 2-D ``source`` (gathered by :func:`put_rows`)."""
     out = np.empty((rows.size, source.shape[1]), source.dtype)
-    for i in numba.prange(rows.size):
-        for column in range(source.shape[1]):
-            out[i, column] = source[rows[i], column]
+    put_rows(source, rows, out, 0)
     return out
 
 
-@numba.njit(cache=True, nogil=True, parallel=True)
-def leading_columns(
-    found: NDArray[np.uint32], width: int
-) -> NDArray[np.uint32]:  # pragma: no cover
-    """``np.ascontiguousarray(found[:, :width])``."""
+def leading_columns(found: NDArray[np.uint32], width: int) -> NDArray[np.uint32]:
+    """``np.ascontiguousarray(found[:, :width])`` (copied by :func:`copy_rows`)."""
     out = np.empty((found.shape[0], width), found.dtype)
-    for row in numba.prange(found.shape[0]):
-        for column in range(width):
-            out[row, column] = found[row, column]
+    copy_rows(found[:, :width], out)
     return out
 
 

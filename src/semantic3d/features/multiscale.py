@@ -17,7 +17,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from semantic3d.core.errors import ShapeError
 from semantic3d.core.pointcloud import PointCloud
-from semantic3d.features._row_kernels import copy_rows, scatter_rows, take_rows
+from semantic3d.features._row_kernels import copy_rows, put_rows, take_rows
 from semantic3d.features.attributes import compute_attribute_features
 from semantic3d.features.config import FeatureConfig
 from semantic3d.features.covariance import (
@@ -267,7 +267,7 @@ def fill_level_columns(
         return
     block = np.empty((needed.size, columns.shape[1]), np.float32)
     compute(needed, block)
-    scatter_rows(block, inverse, columns)
+    put_rows(block, inverse, columns, 0)  # columns[:] = block[inverse]
 
 
 def distinct_voxels(
