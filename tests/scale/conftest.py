@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from semantic3d.baselines.covariance.config import ForestConfig, PredictionConfig
+from semantic3d.baselines.covariance.config import ContextConfig, ForestConfig, PredictionConfig
 from semantic3d.baselines.covariance.model import CovarianceModel
 from semantic3d.scale.cluster import ClusterSpec, DaskCluster, connect
 from tests.baselines.conftest import SMALL_CONFIG, write_scan
@@ -24,8 +24,10 @@ TINY_CONFIG = dataclasses.replace(
     SMALL_CONFIG,
     forest=ForestConfig(n_estimators=4, max_depth=10),
     prediction=PredictionConfig(tile_size_m=4.8, chunk_size=4_000, max_points_in_memory=10**7),
+    context=ContextConfig(max_graph_nodes=200),
 )
-"""Small forest, small tiles (a scan of ~14 m makes about ten)."""
+"""Small forest, small tiles (a scan of ~14 m makes about ten), the denser tiles' graphs cut
+in squares."""
 
 
 @pytest.fixture(scope="session")

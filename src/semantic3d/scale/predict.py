@@ -35,7 +35,7 @@ from semantic3d.baselines.common.prediction import (
 from semantic3d.baselines.common.run import PredictionRun, PredictionRunSet
 from semantic3d.baselines.common.submission import ScanToLabel
 from semantic3d.baselines.covariance.context import row_centroids
-from semantic3d.baselines.covariance.model import CovarianceModel
+from semantic3d.baselines.covariance.model import CovarianceModel, point_cells
 from semantic3d.core.pointcloud import PointCloud
 from semantic3d.features.tiling import TiledScan
 from semantic3d.scale.cluster import DaskCluster, MapProgress
@@ -143,9 +143,11 @@ def label_tile(scan_folder: str, scan_state: bytes, model_path: str, tile: TileK
         # positions relative to the grid origin, as in one process
         relative = (features.xyz - opened.origin).astype(np.float32)
         row_xyz = row_centroids(relative, table.point_row, table.n_rows)
-    labels = model.predict_rows(table.values, row_xyz=row_xyz, neighbours=table.neighbours)[
-        table.point_row
-    ]
+    row_cell = np.zeros(table.n_rows, np.uint16)  # the squares a dense tile's graph is cut in
+    row_cell[table.point_row] = point_cells(features.xyz, origin=opened.origin, config=model.config)
+    labels = model.predict_rows(
+        table.values, row_xyz=row_xyz, row_cell=row_cell, neighbours=table.neighbours
+    )[table.point_row]
     return features.point_indices, labels
 
 

@@ -142,6 +142,33 @@ def tile_keys(
     return keys
 
 
+@nb.njit(cache=True, nogil=True, parallel=True)
+def tile_cell_codes(
+    xyz: np.ndarray,
+    origin_x: float,
+    origin_y: float,
+    cell_m: float,
+    cells_per_tile: int,
+    depth: int,
+) -> np.ndarray:  # pragma: no cover - compiled
+    """``(n,)`` uint16 Morton code of every point's square in its tile cut into
+    ``2**depth`` by ``2**depth`` squares of whole cells
+    (:meth:`~semantic3d.spatial.grid.TileGrid.cell_codes`)."""
+    codes = np.empty(xyz.shape[0], np.uint16)
+    side = np.int64(1) << depth
+    for i in nb.prange(xyz.shape[0]):
+        cx = np.int64(np.floor((xyz[i, 0] - origin_x) / cell_m))
+        cy = np.int64(np.floor((xyz[i, 1] - origin_y) / cell_m))
+        sx = (cx - (cx // cells_per_tile) * cells_per_tile) * side // cells_per_tile
+        sy = (cy - (cy // cells_per_tile) * cells_per_tile) * side // cells_per_tile
+        code = np.int64(0)
+        for bit in range(depth):  # x's bits above y's at every level
+            code |= ((sx >> bit) & 1) << (2 * bit + 1)
+            code |= ((sy >> bit) & 1) << (2 * bit)
+        codes[i] = code
+    return codes
+
+
 @nb.njit(cache=True, nogil=True)
 def xyz_label_rows(
     xyz: np.ndarray, labels: np.ndarray, out: np.ndarray

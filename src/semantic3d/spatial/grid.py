@@ -13,6 +13,14 @@ in exactly one tile, however the points are split between processes.
 [[0, -1], [1, 1]]
 >>> grid.tile_bounds((1, -1))
 (10.0, -10.0, 20.0, 0.0)
+
+Inside a tile, :meth:`TileGrid.cell_codes` numbers the squares of a quadtree (the tile cut
+into ``2**depth`` by ``2**depth`` squares of whole cells) in Morton order, so that every
+square of every level holds a contiguous range of codes; :func:`quadtree_leaves` cuts a
+tile's points into squares of at most a given count with them.
+
+>>> grid.cell_codes(np.array([[0.2, 0.2, 0.0], [9.9, 0.2, 0.0], [0.2, 9.9, 0.0]]), depth=1).tolist()
+[0, 2, 1]
 """
 
 from __future__ import annotations
@@ -25,13 +33,16 @@ from numpy.typing import NDArray
 
 from semantic3d.core.errors import ShapeError
 
-__all__ = ["Bounds", "TileGrid", "TileKey"]
+__all__ = ["MAX_CELL_DEPTH", "Bounds", "TileGrid", "TileKey", "quadtree_leaves"]
 
 TileKey = tuple[int, int]
 """``(ix, iy)`` index of a tile."""
 
 Bounds = tuple[float, float, float, float]
 """``(x_min, y_min, x_max, y_max)`` of a rectangle, metres."""
+
+MAX_CELL_DEPTH = 8
+"""Deepest quadtree level :meth:`TileGrid.cell_codes` numbers (its codes are 16-bit)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -84,6 +95,33 @@ class TileGrid:
         )
         return keys
 
+    def cell_codes(self, xyz: NDArray[np.float64], *, depth: int) -> NDArray[np.uint16]:
+        """``(n,)`` Morton code of each point's square in its tile, the tile cut into
+        ``2**depth`` by ``2**depth`` squares (``0 <= depth <= MAX_CELL_DEPTH``).
+
+        A square is made of whole cells (cell ``c`` of a tile lies in square
+        ``c * 2**depth // cells_per_tile``; with fewer cells than squares some squares
+        are empty), so every point of a cell, and of a voxel nested in the cells, has
+        the same code. The bits of the x square sit above the y square's at every level:
+        the squares of level ``d`` are the codes sharing their top ``2 d`` bits.
+        """
+        from semantic3d.spatial._kernels import tile_cell_codes
+
+        if not 0 <= depth <= MAX_CELL_DEPTH:
+            raise ShapeError(f"depth: expected 0..{MAX_CELL_DEPTH}, found {depth}")
+        points = np.asarray(xyz)
+        if points.ndim != 2 or points.shape[1] < 2:
+            raise ShapeError(f"xyz: expected (n, >=2) coordinates, found {points.shape}")
+        codes: NDArray[np.uint16] = tile_cell_codes(
+            np.ascontiguousarray(points, dtype=np.float64),
+            float(self.origin_xy[0]),
+            float(self.origin_xy[1]),
+            float(self.cell_size_m),
+            int(self.cells_per_tile),
+            int(depth),
+        )
+        return codes
+
     def tile_bounds(self, tile: TileKey) -> Bounds:
         """``(x_min, y_min, x_max, y_max)`` of ``tile``."""
         size = self.tile_size_m
@@ -112,3 +150,34 @@ class TileGrid:
             cell_size_m=float(data["cell_size_m"]),
             cells_per_tile=int(data["cells_per_tile"]),
         )
+
+
+def quadtree_leaves(codes: NDArray[np.integer], *, depth: int, max_count: int) -> NDArray[np.int64]:
+    """Cut one tile's points into quadtree squares of at most ``max_count`` points.
+
+    ``codes`` are the points' :meth:`TileGrid.cell_codes` at ``depth``. Starting from the
+    whole tile, a square holding more than ``max_count`` points is cut into its four
+    quadrants, down to the squares of ``depth`` (which may hold more). Returns, for every
+    point, the first code of its leaf square: points share a leaf exactly when they share
+    this number. The leaves depend only on the points' codes, not on their order.
+    """
+    if not 0 <= depth <= MAX_CELL_DEPTH:
+        raise ShapeError(f"depth: expected 0..{MAX_CELL_DEPTH}, found {depth}")
+    if max_count < 1:
+        raise ShapeError(f"max_count: expected a positive count, found {max_count}")
+    n_codes = 1 << (2 * depth)
+    codes = np.asarray(codes)
+    if codes.size and (int(codes.min()) < 0 or int(codes.max()) >= n_codes):
+        raise ShapeError(f"codes: expected values in 0..{n_codes - 1} for depth {depth}")
+    before = np.zeros(n_codes + 1, np.int64)  # points with a smaller code
+    np.cumsum(np.bincount(codes, minlength=n_codes), out=before[1:])
+    leaf = np.empty(n_codes, np.int64)
+    squares = [(0, n_codes)]  # (first code, codes) of the squares still to place
+    while squares:
+        first, size = squares.pop()
+        if size > 1 and before[first + size] - before[first] > max_count:
+            quarter = size // 4
+            squares.extend((first + k * quarter, quarter) for k in range(4))
+        else:
+            leaf[first : first + size] = first
+    return leaf[codes]

@@ -252,3 +252,60 @@ def test_dense_groups_equal_numpy_unique(ids: list[int], runs: int) -> None:
     np.testing.assert_array_equal(groups, expected)
     np.testing.assert_array_equal(inverse, expected_inverse.reshape(-1))
     assert inverse.dtype == np.int64
+
+
+def test_a_large_group_is_cut_in_quadtree_squares_each_labelled_alone() -> None:
+    """A tile of more rows than ``max_group_rows`` is labelled square by square (the
+    quadtree of its rows' cells), each square as if alone, on any number of threads; a
+    small tile, or no cap, is labelled whole."""
+    from semantic3d.baselines.covariance.context import (
+        GRAPH_CELL_DEPTH,
+        label_rows,
+        label_rows_by_group,
+    )
+    from semantic3d.core.threads import thread_limit
+    from semantic3d.spatial.grid import TileGrid, quadtree_leaves
+
+    rng = np.random.default_rng(5)
+    n, k = 900, 8
+    # a dense tile (0..16 m, most rows near its corner, as near a scanner) and a sparse one
+    xyz = np.concatenate(
+        [rng.gamma(1.5, 2.5, (700, 3)).clip(0, 15.9) * [1, 1, 0.2], rng.random((200, 3)) * 16]
+    )
+    xyz[700:, 0] += 16.0
+    proba = rng.dirichlet(np.ones(4) * 0.7, size=n)
+    distance = np.linalg.norm(xyz[:, None] - xyz[None], axis=2)
+    lists = np.argsort(distance, axis=1, kind="stable")[:, : k + 2]
+    grid = TileGrid(origin_xy=(0.0, 0.0), cell_size_m=0.25, cells_per_tile=64)
+    tile = grid.tile_keys(xyz)[:, 0]
+    cell = grid.cell_codes(xyz, depth=GRAPH_CELL_DEPTH)
+    cap = 250  # the sparse tile (200 rows) stays whole
+
+    def labelled(**options: object) -> np.ndarray:
+        return label_rows_by_group(
+            proba, None, tile, potts_weight=2.0, neighbours=lists, row_cell=cell, **options
+        )
+
+    split = labelled(max_group_rows=cap)
+    leaves = quadtree_leaves(cell[:700], depth=GRAPH_CELL_DEPTH, max_count=cap)
+    squares = np.unique(leaves)
+    assert squares.size >= 700 // cap
+    for first in squares.tolist():  # the dense tile: each square alone
+        rows = np.flatnonzero(leaves == first)
+        local = np.full(n, -1)
+        local[rows] = np.arange(rows.size)
+        alone = label_rows(proba[rows], None, potts_weight=2.0, neighbours=local[lists[rows]])
+        np.testing.assert_array_equal(split[rows], alone)
+    whole = labelled(max_group_rows=0)
+    np.testing.assert_array_equal(split[700:], whole[700:])  # the sparse tile: whole
+    np.testing.assert_array_equal(
+        whole, label_rows_by_group(proba, None, tile, potts_weight=2.0, neighbours=lists)
+    )
+    assert not np.array_equal(split[:700], whole[:700])
+    for threads in (1, 3):
+        with thread_limit(threads):
+            np.testing.assert_array_equal(labelled(max_group_rows=cap), split)
+    with pytest.raises(ShapeError, match=r"row_cell: expected \(900,\), found \(3,\)"):
+        label_rows_by_group(
+            proba, None, tile, potts_weight=2.0, neighbours=lists, row_cell=cell[:3]
+        )

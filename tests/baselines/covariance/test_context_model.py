@@ -77,6 +77,10 @@ def test_the_context_step_is_on_by_default_and_off_in_the_paper_preset() -> None
         ("[context]\nn_neighbours = 0\n", r"\[context\] n_neighbours: expected a positive"),
         ("[context]\nmax_sweeps = 0\n", r"\[context\] max_sweeps: expected a positive"),
         ("[context]\nweight = 1.0\n", r"weight"),
+        (
+            "[context]\nmax_graph_nodes = -1\n",
+            r"\[context\] max_graph_nodes: expected an integer >= 0, found -1",
+        ),
     ],
 )
 def test_a_bad_context_section_is_rejected(tmp_path: Path, text: str, match: str) -> None:
@@ -88,8 +92,22 @@ def test_a_bad_context_section_is_rejected(tmp_path: Path, text: str, match: str
 
 def test_a_context_section_is_read(tmp_path: Path) -> None:
     path = tmp_path / "c.toml"
-    path.write_text("[context]\npotts_weight = 0.5\nmax_sweeps = 2\n")
-    assert load_config(path).context == ContextConfig(potts_weight=0.5, max_sweeps=2)
+    path.write_text("[context]\npotts_weight = 0.5\nmax_sweeps = 2\nmax_graph_nodes = 0\n")
+    assert load_config(path).context == ContextConfig(
+        potts_weight=0.5, max_sweeps=2, max_graph_nodes=0
+    )
+
+
+def test_a_model_saved_before_the_graph_cap_still_cuts_whole_tiles() -> None:
+    """A context section pickled with three fields unpickles with ``max_graph_nodes = 0``
+    (whole tiles: its labels as when it was saved); a current one keeps its value."""
+    import pickle
+
+    older = ContextConfig.__new__(ContextConfig)
+    older.__setstate__([2.0, 8, 1])
+    assert older == ContextConfig(potts_weight=2.0, max_graph_nodes=0)
+    current = ContextConfig(potts_weight=2.0, max_graph_nodes=77)
+    assert pickle.loads(pickle.dumps(current)) == current
 
 
 def test_context_lowers_the_energy_and_keeps_labels_in_input_order(
@@ -167,8 +185,49 @@ def test_the_context_settings_survive_the_model_file(
         "potts_weight": 2.0,
         "n_neighbours": 8,
         "max_sweeps": 1,
+        "max_graph_nodes": 65536,
     }
     loaded = load_model(path)
     assert loaded.config.context == model.config.context
     points = read_ascii_points(scenes / "test.txt")
     np.testing.assert_array_equal(predict_cloud(loaded, points), predict_cloud(model, points))
+
+
+def test_a_dense_tile_cut_in_squares_gives_the_same_labels_however_it_is_read(
+    model: CovarianceModel, scenes: Path, tmp_path: Path
+) -> None:
+    """With a cap below the test scan's tiles, their graphs are cut in squares: labels
+    change a little, and stay the same in memory, streamed, tiled, on shuffled input and
+    on any number of threads."""
+    from semantic3d.core.threads import thread_limit
+
+    cloud = find_labelled_scans(scenes, names=["test"])[0]
+    points = read_ascii_points(cloud.points_path, labels_path=cloud.labels_path)
+    assert points.labels is not None
+    capped = _with(model, context=dataclasses.replace(model.config.context, max_graph_nodes=300))
+    whole_tiles = predict_cloud(_with(model, context=model.config.context), points)
+    squares = predict_cloud(capped, points)
+    changed = np.mean(squares != whole_tiles)
+    assert 0 < changed < 0.05
+    assert _miou(points.labels, squares) >= _miou(points.labels, whole_tiles) - 0.02
+
+    order = np.concatenate([[0], 1 + np.random.default_rng(1).permutation(points.n_points - 1)])
+    shuffled = PointCloud(
+        xyz=points.xyz[order], intensity=points.intensity[order], rgb=points.rgb[order]
+    )
+    np.testing.assert_array_equal(predict_cloud(capped, shuffled), squares[order])
+    with thread_limit(1):
+        np.testing.assert_array_equal(predict_cloud(capped, points), squares)
+    tiled = predict_scan(
+        _with(
+            capped,
+            prediction=dataclasses.replace(
+                model.config.prediction, max_points_in_memory=0, chunk_size=5_000
+            ),
+        ),
+        cloud.points_path,
+        out_path=tmp_path / "tiled.labels",
+        workdir=tmp_path,
+    )
+    assert tiled.tiled
+    np.testing.assert_array_equal(read_labels(tiled.labels_path), squares)

@@ -28,6 +28,7 @@ the values of every key the file leaves out: ``"default"`` (the dataclass defaul
 
     [context]
     potts_weight = 4.0  # the context step (0 turns it off)
+    max_graph_nodes = 65536  # a denser tile's graph is cut in squares (0: whole tiles)
 
     [grid_search]
     n_estimators = [25, 50]
@@ -39,6 +40,7 @@ from __future__ import annotations
 import numbers
 import tomllib
 from dataclasses import dataclass, field
+from dataclasses import fields as dataclass_fields
 from pathlib import Path
 from typing import Any, cast
 
@@ -166,11 +168,18 @@ class ContextConfig:
         n_neighbours: graph edges per voxel.
         max_sweeps: alpha-expansion passes over the classes (each pass lowers the energy;
             one pass gives nearly all of the gain).
+        max_graph_nodes: a tile's graph of more voxels is cut in quadtree squares of at
+            most this many (down to squares of a 64th of the tile's edge), which are
+            labelled apart and at the same time: the densest tile, near the scanner,
+            holds over half a scan's voxels, and its cut alone would otherwise end every
+            many-thread run on one thread. 0 cuts whole tiles (a model saved before the
+            setting existed does). The labels do not depend on the thread count either way.
     """
 
     potts_weight: float = DEFAULT_POTTS_WEIGHT
     n_neighbours: int = 8
     max_sweeps: int = 1
+    max_graph_nodes: int = 1 << 16
 
     def __post_init__(self) -> None:
         if isinstance(self.potts_weight, bool) or not (
@@ -179,11 +188,26 @@ class ContextConfig:
             raise ConfigError(f"potts_weight: expected a number >= 0, found {self.potts_weight!r}")
         _check_positive("n_neighbours", self.n_neighbours)
         _check_positive("max_sweeps", self.max_sweeps)
+        if not _is_integer(self.max_graph_nodes) or self.max_graph_nodes < 0:
+            raise ConfigError(
+                f"max_graph_nodes: expected an integer >= 0, found {self.max_graph_nodes!r}"
+            )
+
+    def __setstate__(self, state: list[Any]) -> None:
+        """Unpickled: a model saved before ``max_graph_nodes`` existed cut whole tiles, and
+        still does (its labels as when it was saved)."""
+        values = list(state)
+        values += [0] * (len(_CONTEXT_FIELDS) - len(values))
+        for name, value in zip(_CONTEXT_FIELDS, values, strict=True):
+            object.__setattr__(self, name, value)
 
     @property
     def enabled(self) -> bool:
         """Whether prediction runs the context step."""
         return self.potts_weight > 0
+
+
+_CONTEXT_FIELDS = tuple(f.name for f in dataclass_fields(ContextConfig))
 
 
 @dataclass(frozen=True, slots=True)

@@ -10,6 +10,11 @@ every row its class probabilities:
   minimising a Potts energy, ``sum_i -log p_i(l_i) + weight * sum_(i,j) [l_i != l_j]``,
   with alpha-expansion moves (Boykov, Veksler & Zabih 2001), each move an exact binary
   cut (Boykov-Kolmogorov max-flow, compiled: :mod:`._graph_cut`).
+
+A scan's graph is cut tile by tile (:func:`label_rows_by_group`), and a tile's graph of
+more than ``max_group_rows`` rows in quadtree squares of at most that many: no edge joins
+two groups, so the groups are cut at the same time, and every group's labels are those it
+gets alone, whatever the threads.
 """
 
 from __future__ import annotations
@@ -20,9 +25,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from semantic3d.core.errors import ConfigError, ShapeError
-from semantic3d.core.threads import map_in_threads
+from semantic3d.core.threads import map_in_threads, serial_section
+from semantic3d.spatial.grid import quadtree_leaves
 
 __all__ = [
+    "GRAPH_CELL_DEPTH",
     "alpha_expansion",
     "graph_edges",
     "knn_edges",
@@ -36,6 +43,10 @@ __all__ = [
 ]
 
 _EPS = 1e-6
+
+GRAPH_CELL_DEPTH = 6
+"""Depth of the rows' square codes (``row_cell``) that cut a large tile's graph: squares of
+a 64th of the tile's edge at the finest (40 cm for the default 25.6 m tiles)."""
 
 
 def smooth_probabilities(
@@ -306,30 +317,43 @@ def label_rows_by_group(
     n_neighbours: int = 8,
     max_sweeps: int = 1,
     neighbours: NDArray[np.int64] | None = None,
+    row_cell: NDArray[np.integer] | None = None,
+    max_group_rows: int = 0,
 ) -> NDArray[np.int64]:
     """:func:`label_rows` run separately on every group of rows (``row_group``, e.g. the
     tile of each row): no edge joins two groups, so a scan labelled whole gives the same
-    labels as the same scan labelled tile by tile. Groups are labelled on the thread
-    budget's threads at once (each group's labels are those it gets alone)."""
+    labels as the same scan labelled tile by tile. With ``row_cell`` (each row's square in
+    its tile, :meth:`~semantic3d.spatial.grid.TileGrid.cell_codes` at
+    :data:`GRAPH_CELL_DEPTH`) and ``max_group_rows`` > 0, a group of more rows is cut
+    further into quadtree squares of at most that many (:func:`_split_groups`). Groups are
+    labelled on the thread budget's threads at once (each group's labels are those it
+    gets alone); one group alone on one thread, the others lent back
+    (:func:`~semantic3d.core.threads.serial_section`)."""
     proba = np.asarray(proba)
     n = proba.shape[0]
     if row_group.shape != (n,):
         raise ShapeError(f"row_group: expected ({n},), found {row_group.shape}")
+    if row_cell is not None and row_cell.shape != (n,):
+        raise ShapeError(f"row_cell: expected ({n},), found {row_cell.shape}")
     if potts_weight <= 0 or n < 2:
         return np.argmax(proba, axis=1).astype(np.int64)
     groups, inverse = _dense_groups(np.asarray(row_group, np.int64))
-    if groups.size <= 1:
-        return label_rows(
-            proba,
-            row_xyz,
-            potts_weight=potts_weight,
-            n_neighbours=n_neighbours,
-            max_sweeps=max_sweeps,
-            neighbours=neighbours,
-        )
+    n_groups = groups.size
+    if row_cell is not None and max_group_rows > 0:
+        inverse, n_groups = _split_groups(inverse, n_groups, row_cell, max_group_rows)
+    if n_groups <= 1:
+        with serial_section():
+            return label_rows(
+                proba,
+                row_xyz,
+                potts_weight=potts_weight,
+                n_neighbours=n_neighbours,
+                max_sweeps=max_sweeps,
+                neighbours=neighbours,
+            )
     result = np.empty(n, np.int64)
     order = np.argsort(inverse, kind="stable")
-    bounds = np.searchsorted(inverse[order], np.arange(groups.size + 1))
+    bounds = np.searchsorted(inverse[order], np.arange(n_groups + 1))
     edges = edge_bounds = None
     if lists_suffice(neighbours, n_neighbours):
         assert neighbours is not None
@@ -339,7 +363,7 @@ def label_rows_by_group(
         local = np.empty(n, np.int64)
         local[order] = np.arange(n) - np.repeat(bounds[:-1], np.diff(bounds))
         lists = _checked_lists(neighbours, n, n_neighbours)
-        edges, edge_bounds = grouped_edges(lists, n_neighbours + 1, inverse, local, groups.size)
+        edges, edge_bounds = grouped_edges(lists, n_neighbours + 1, inverse, local, n_groups)
 
     def label_group(number: int) -> NDArray[np.int64]:
         rows = order[bounds[number] : bounds[number + 1]]  # ascending: the group's order
@@ -366,3 +390,30 @@ def label_rows_by_group(
     ):
         result[order[bounds[number] : bounds[number + 1]]] = labels
     return result
+
+
+def _split_groups(
+    inverse: NDArray[np.int64],
+    n_groups: int,
+    row_cell: NDArray[np.integer],
+    max_rows: int,
+) -> tuple[NDArray[np.int64], int]:
+    """Groups (``inverse``, numbered ``0..n_groups-1``) of more than ``max_rows`` rows cut
+    into the quadtree squares of their rows' cells (:func:`~semantic3d.spatial.grid.
+    quadtree_leaves`): a square of more rows is cut into its quadrants, down to the
+    squares of :data:`GRAPH_CELL_DEPTH`. The first square keeps the group's number, the
+    others are numbered after the groups. Depends only on each group's rows and cells."""
+    sizes = np.bincount(inverse, minlength=n_groups)
+    large = np.flatnonzero(sizes > max_rows)
+    if not large.size:
+        return inverse, n_groups
+    cells = np.asarray(row_cell)
+    split = inverse.copy()
+    for group in large.tolist():
+        rows = np.flatnonzero(inverse == group)
+        leaves = quadtree_leaves(cells[rows], depth=GRAPH_CELL_DEPTH, max_count=max_rows)
+        first_codes, rank = np.unique(leaves, return_inverse=True)
+        rank = rank.reshape(-1)
+        split[rows] = np.where(rank == 0, group, n_groups + rank - 1)
+        n_groups += first_codes.size - 1
+    return split, n_groups

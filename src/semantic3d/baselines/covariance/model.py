@@ -17,6 +17,7 @@ from numpy.typing import NDArray
 from semantic3d.baselines.common.prediction import LabelledBlock
 from semantic3d.baselines.covariance.config import ContextConfig, CovarianceConfig
 from semantic3d.baselines.covariance.context import (
+    GRAPH_CELL_DEPTH,
     label_rows_by_group,
     lists_suffice,
     row_centroids,
@@ -24,7 +25,6 @@ from semantic3d.baselines.covariance.context import (
 from semantic3d.baselines.covariance.forest import CompiledClassifier
 from semantic3d.core.errors import ShapeError
 from semantic3d.core.pointcloud import PointCloud
-from semantic3d.core.threads import serial_section
 from semantic3d.features.multiscale import FeatureTable
 from semantic3d.features.pyramid import grid_origin
 from semantic3d.spatial.grid import TileGrid
@@ -160,17 +160,20 @@ class CovarianceModel:
             row_labels = self.predict_rows(table.values)
         else:
             if self.needs_row_positions(table):
-                xyz, tiles = positions.read(block.point_indices)
+                xyz, tiles, cells = positions.read(block.point_indices)
                 row_xyz = row_centroids(xyz, table.point_row, table.n_rows)
-            else:  # the graph comes with the features: only the rows' tiles are needed
+            else:  # the graph comes with the features: only the rows' places are needed
                 row_xyz = None
-                tiles = positions.read_tiles(block.point_indices)
+                tiles, cells = positions.read_places(block.point_indices)
             row_tile = np.zeros(table.n_rows, np.int64)
             row_tile[table.point_row] = tiles
+            row_cell = np.zeros(table.n_rows, np.uint16)
+            row_cell[table.point_row] = cells
             row_labels = self.predict_rows(
                 table.values,
                 row_xyz=row_xyz,
                 row_tile=row_tile,
+                row_cell=row_cell,
                 neighbours=table.neighbours,
             )
         labels: NDArray[np.uint8] = row_labels[table.point_row]
@@ -208,6 +211,7 @@ class CovarianceModel:
         *,
         row_xyz: NDArray[np.floating] | None = None,
         row_tile: NDArray[np.int64] | None = None,
+        row_cell: NDArray[np.uint16] | None = None,
         neighbours: NDArray[np.int64] | None = None,
     ) -> NDArray[np.uint8]:
         """Label values of feature rows ``(n, n_features)`` in ``feature_names`` order.
@@ -216,7 +220,10 @@ class CovarianceModel:
         context step on (``[context] potts_weight > 0``) and the rows' nearest neighbours,
         the rows are labelled together by alpha-expansion over their nearest-neighbour
         graph, tile by tile when ``row_tile`` (``(n,)`` tile of each row,
-        :func:`point_tiles`) is given. The neighbours are ``neighbours``, the feature
+        :func:`point_tiles`) is given, and a tile of more than
+        ``[context] max_graph_nodes`` rows in squares of at most that many when
+        ``row_cell`` (``(n,)`` square of each row in its tile, :func:`point_cells`) is
+        given. The neighbours are ``neighbours``, the feature
         table's lists (:attr:`~semantic3d.features.multiscale.FeatureTable.neighbours`),
         or else found from ``row_xyz`` (``(n, 3)`` position of each row, e.g. the centroid
         of its points).
@@ -235,17 +242,18 @@ class CovarianceModel:
             logger.warning("context step skipped: no row positions or neighbours were given")
         if not graph or not context.enabled:
             columns = np.argmax(proba, axis=1)
-        else:  # the cut of one group is serial: in a tile's task, lend its other threads
-            with serial_section():
-                columns = label_rows_by_group(
-                    proba,
-                    None if row_xyz is None else np.asarray(row_xyz, dtype=np.float64),
-                    np.zeros(proba.shape[0], np.int64) if row_tile is None else row_tile,
-                    potts_weight=context.potts_weight,
-                    n_neighbours=context.n_neighbours,
-                    max_sweeps=context.max_sweeps,
-                    neighbours=neighbours,
-                )
+        else:  # a tile's groups on its task's threads; one group alone on one thread
+            columns = label_rows_by_group(
+                proba,
+                None if row_xyz is None else np.asarray(row_xyz, dtype=np.float64),
+                np.zeros(proba.shape[0], np.int64) if row_tile is None else row_tile,
+                potts_weight=context.potts_weight,
+                n_neighbours=context.n_neighbours,
+                max_sweeps=context.max_sweeps,
+                neighbours=neighbours,
+                row_cell=row_cell,
+                max_group_rows=context.max_graph_nodes,
+            )
         labels: NDArray[np.uint8] = classes[columns]
         return labels
 
@@ -257,40 +265,54 @@ def point_tiles(
     whole coarsest voxels of about ``[prediction] tile_size_m``, anchored at ``origin``
     (the grid origin of the scan's first point), as in
     :class:`~semantic3d.features.tiling.TiledScan`."""
-    features = config.features
-    tile_cells = 2 ** (features.n_levels - 1) * max(
-        1, math.ceil(config.prediction.tile_size_m / features.coarsest_voxel_size_m - 1e-9)
-    )
-    grid = TileGrid(
-        origin_xy=(float(origin[0]), float(origin[1])),
-        cell_size_m=features.base_voxel_size_m,
-        cells_per_tile=tile_cells,
-    )
-    keys = grid.tile_keys(xyz)
+    keys = _tile_grid(origin, config).tile_keys(xyz)
     packed: NDArray[np.int64] = (keys[:, 0] << 32) + keys[:, 1]
     return packed
 
 
+def point_cells(
+    xyz: NDArray[np.float64], *, origin: NDArray[np.float64], config: CovarianceConfig
+) -> NDArray[np.uint16]:
+    """``(n,)`` square of every point in its tile (:func:`point_tiles`), the code the
+    context step cuts a large tile's graph by
+    (:func:`~semantic3d.baselines.covariance.context.label_rows_by_group`)."""
+    return _tile_grid(origin, config).cell_codes(xyz, depth=GRAPH_CELL_DEPTH)
+
+
+def _tile_grid(origin: NDArray[np.float64], config: CovarianceConfig) -> TileGrid:
+    features = config.features
+    tile_cells = 2 ** (features.n_levels - 1) * max(
+        1, math.ceil(config.prediction.tile_size_m / features.coarsest_voxel_size_m - 1e-9)
+    )
+    return TileGrid(
+        origin_xy=(float(origin[0]), float(origin[1])),
+        cell_size_m=features.base_voxel_size_m,
+        cells_per_tile=tile_cells,
+    )
+
+
 class _PositionFile:
-    """The scan's point positions (float32, relative to the grid origin) and tiles kept
-    on disk while it streams, so the context step can place the rows of every block in
-    bounded memory."""
+    """The scan's point positions (float32, relative to the grid origin), tiles and
+    squares in their tiles kept on disk while it streams, so the context step can place
+    the rows of every block in bounded memory."""
 
     def __init__(self, folder: Path, config: CovarianceConfig) -> None:
         self.folder = folder
         self.config = config
-        self._xyz: NDArray[np.float32] | None = None
-        self._tiles: NDArray[np.int64] | None = None
+        self._files: tuple[NDArray[np.float32], NDArray[np.int64], NDArray[np.uint16]] | None
+        self._files = None
         self._complete = False
         self._lock = threading.Lock()
 
     def record(self, chunks: Iterable[PointCloud]) -> Iterator[PointCloud]:
-        """Pass ``chunks`` through, appending their positions and tiles to the files."""
+        """Pass ``chunks`` through, appending their positions, tiles and squares to the
+        files."""
         self.folder.mkdir(parents=True, exist_ok=True)
         origin: NDArray[np.float64] | None = None
         with (
             (self.folder / "xyz.f32").open("wb") as xyz_file,
             (self.folder / "tiles.i64").open("wb") as tile_file,
+            (self.folder / "cells.u16").open("wb") as cell_file,
         ):
             for chunk in chunks:
                 if chunk.n_points:
@@ -303,33 +325,42 @@ class _PositionFile:
                     relative = np.empty(chunk.xyz.shape, np.float32)
                     np.subtract(chunk.xyz, origin, out=relative, casting="same_kind")
                     xyz_file.write(relative.data)
-                    tiles = point_tiles(chunk.xyz, origin=origin, config=self.config)
-                    tile_file.write(tiles.data)
+                    tile_file.write(point_tiles(chunk.xyz, origin=origin, config=self.config).data)
+                    cell_file.write(point_cells(chunk.xyz, origin=origin, config=self.config).data)
                 yield chunk
         self._complete = True
 
     def read(
         self, point_indices: NDArray[np.int64]
-    ) -> tuple[NDArray[np.float32], NDArray[np.int64]]:
-        """``(m, 3)`` positions and ``(m,)`` tiles of the given points (of a scan streamed
+    ) -> tuple[NDArray[np.float32], NDArray[np.int64], NDArray[np.uint16]]:
+        """``(m, 3)`` positions, ``(m,)`` tiles and ``(m,)`` squares of the given points (of
+        a scan streamed through :meth:`record`)."""
+        xyz, tiles, cells = self._open()
+        return (
+            np.asarray(xyz[point_indices]),
+            np.asarray(tiles[point_indices]),
+            np.asarray(cells[point_indices]),
+        )
+
+    def read_places(
+        self, point_indices: NDArray[np.int64]
+    ) -> tuple[NDArray[np.int64], NDArray[np.uint16]]:
+        """``(m,)`` tiles and ``(m,)`` squares of the given points (of a scan streamed
         through :meth:`record`)."""
-        xyz, tiles = self._open()
-        return np.asarray(xyz[point_indices]), np.asarray(tiles[point_indices])
+        _, tiles, cells = self._open()
+        return np.asarray(tiles[point_indices]), np.asarray(cells[point_indices])
 
-    def read_tiles(self, point_indices: NDArray[np.int64]) -> NDArray[np.int64]:
-        """``(m,)`` tiles of the given points (of a scan streamed through :meth:`record`)."""
-        return np.asarray(self._open()[1][point_indices])
-
-    def _open(self) -> tuple[NDArray[np.float32], NDArray[np.int64]]:
+    def _open(self) -> tuple[NDArray[np.float32], NDArray[np.int64], NDArray[np.uint16]]:
         if not self._complete:
             raise RuntimeError(f"{self.folder}: read before the scan finished streaming")
         with self._lock:  # tiles are labelled on several threads
-            if self._xyz is None or self._tiles is None:
-                self._xyz = np.memmap(self.folder / "xyz.f32", dtype=np.float32, mode="r").reshape(
-                    -1, 3
+            if self._files is None:
+                self._files = (
+                    np.memmap(self.folder / "xyz.f32", dtype=np.float32, mode="r").reshape(-1, 3),
+                    np.memmap(self.folder / "tiles.i64", dtype=np.int64, mode="r"),
+                    np.memmap(self.folder / "cells.u16", dtype=np.uint16, mode="r"),
                 )
-                self._tiles = np.memmap(self.folder / "tiles.i64", dtype=np.int64, mode="r")
-            return self._xyz, self._tiles
+            return self._files
 
 
 def concurrent_scans_supported() -> bool:

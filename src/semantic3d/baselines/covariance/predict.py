@@ -28,6 +28,7 @@ from semantic3d.baselines.covariance.context import row_centroids
 from semantic3d.baselines.covariance.model import (
     CovarianceModel,
     concurrent_scans_supported,
+    point_cells,
     point_tiles,
 )
 from semantic3d.core.pointcloud import PointCloud
@@ -58,11 +59,17 @@ def predict_cloud(model: CovarianceModel, cloud: PointCloud) -> NDArray[np.uint8
     )
     row_tile = np.zeros(table.n_rows, np.int64)
     row_tile[table.point_row] = point_tiles(cloud.xyz, origin=origin, config=model.config)
+    row_cell = np.zeros(table.n_rows, np.uint16)
+    row_cell[table.point_row] = point_cells(cloud.xyz, origin=origin, config=model.config)
     row_xyz = None
     if model.needs_row_positions(table):
         relative = (cloud.xyz - origin).astype(np.float32)
         row_xyz = row_centroids(relative, table.point_row, table.n_rows)
     labels = model.predict_rows(
-        table.values, row_xyz=row_xyz, row_tile=row_tile, neighbours=table.neighbours
+        table.values,
+        row_xyz=row_xyz,
+        row_tile=row_tile,
+        row_cell=row_cell,
+        neighbours=table.neighbours,
     )
     return labels[table.point_row]
