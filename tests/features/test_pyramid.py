@@ -85,3 +85,102 @@ def test_bad_shapes_are_rejected() -> None:
         build_pyramid(np.zeros((4, 2)), base_voxel_size_m=0.1, n_levels=1, origin=np.zeros(3))
     with pytest.raises(ExtentError, match="finite"):
         grid_origin([np.nan, 0, 0], coarsest_voxel_size_m=1.0)
+
+
+def _numpy_pyramid(
+    xyz: np.ndarray, attributes: np.ndarray, size: float, n_levels: int, origin: np.ndarray
+) -> list[tuple[np.ndarray, ...]]:
+    """The pyramid as numpy builds it (a stable argsort of the keys per level, each voxel's
+    mean summed in order): ``(cells, keys, xyz, attributes, parent)`` per level, and the
+    point -> voxel map last."""
+    from semantic3d.spatial.voxels import CELL_BITS, CELL_OFFSET
+
+    def pack(cells: np.ndarray) -> np.ndarray:
+        shifted = cells + CELL_OFFSET
+        return (shifted[:, 0] << (2 * CELL_BITS)) | (shifted[:, 1] << CELL_BITS) | shifted[:, 2]
+
+    def means(values: np.ndarray, order: np.ndarray, starts: np.ndarray) -> np.ndarray:
+        out = np.empty((starts.size - 1, values.shape[1]))
+        for group in range(starts.size - 1):
+            for column in range(values.shape[1]):
+                total = 0.0
+                for i in order[starts[group] : starts[group + 1]]:
+                    total += values[i, column]
+                out[group, column] = total / (starts[group + 1] - starts[group])
+        return out
+
+    def group(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        order = np.argsort(keys, kind="stable")
+        ordered = keys[order]
+        change = np.flatnonzero(ordered[1:] != ordered[:-1]) + 1
+        starts = np.concatenate(([0], change, [keys.size])).astype(np.int64)
+        member = np.empty(keys.size, np.int64)
+        member[order] = np.repeat(np.arange(starts.size - 1), np.diff(starts))
+        return order, starts, member
+
+    cells = np.floor((xyz - origin) / size).astype(np.int64)
+    keys = pack(cells)
+    order, starts, point_voxel = group(keys)
+    level = (
+        cells[order[starts[:-1]]],
+        keys[order[starts[:-1]]],
+        means(xyz - origin, order, starts),
+        means(attributes, order, starts),
+    )
+    levels = []
+    for number in range(n_levels):
+        if number == n_levels - 1:
+            levels.append((*level, np.full(level[1].size, -1)))
+            break
+        parent_cells = level[0] >> 1
+        parent_keys = pack(parent_cells)
+        order, starts, parent = group(parent_keys)
+        levels.append((*level, parent))
+        level = (
+            parent_cells[order[starts[:-1]]],
+            parent_keys[order[starts[:-1]]],
+            means(level[2], order, starts),
+            means(level[3], order, starts),
+        )
+    return [*levels, (point_voxel,)]
+
+
+@pytest.mark.parametrize("threads", [1, 3])
+@pytest.mark.parametrize("seed", [0, 1])
+def test_the_pyramid_is_numpys_bit_for_bit_on_any_number_of_threads(
+    seed: int, threads: int
+) -> None:
+    """Sorted by the parallel radix sort, each voxel summed on its thread: the same arrays
+    as a stable argsort and sums in point order give."""
+    from semantic3d.core.threads import thread_limit
+
+    rng = np.random.default_rng(seed)
+    xyz = _cloud(n=40_000, seed=seed)
+    xyz[::7] = xyz[1::7]  # points sharing voxels, in any order
+    xyz[5] = xyz[0] + [-3.0, 2.5, -1.0]  # cells below the first point's
+    attributes = rng.random((xyz.shape[0], 2))
+    origin = grid_origin(xyz[0], coarsest_voxel_size_m=0.8)
+    with thread_limit(threads):
+        pyramid = build_pyramid(
+            xyz, base_voxel_size_m=0.05, n_levels=5, origin=origin, attributes=attributes
+        )
+    *expected, (point_voxel,) = _numpy_pyramid(xyz, attributes, 0.05, 5, origin)
+    np.testing.assert_array_equal(pyramid.point_voxel, point_voxel)
+    for level, (cells, keys, centres, values, parent) in zip(pyramid.levels, expected, strict=True):
+        np.testing.assert_array_equal(level.cells, cells)
+        np.testing.assert_array_equal(level.keys, keys)
+        assert np.array_equal(level.xyz, centres)  # bit for bit
+        assert np.array_equal(level.attributes, values)
+        np.testing.assert_array_equal(level.parent, parent)
+
+
+def test_a_coordinate_that_is_not_a_number_is_rejected() -> None:
+    xyz = _cloud(n=10)
+    xyz[3, 1] = np.nan
+    with pytest.raises(ExtentError, match="finite coordinates"):
+        build_pyramid(
+            xyz,
+            base_voxel_size_m=0.1,
+            n_levels=2,
+            origin=grid_origin(xyz[0], coarsest_voxel_size_m=0.2),
+        )

@@ -13,7 +13,9 @@ coarsest grid. Cells are integer coordinates relative to that origin; a voxel's 
 packs its three cells into one int64 (21 bits each), which orders and identifies it.
 Every sum runs in a fixed order (points in input order within a voxel, children in key
 order), so a pyramid built from a tile equals the same voxels of the whole-scan pyramid
-bit for bit.
+bit for bit. Every step runs on the thread budget's threads (voxels sorted by a parallel
+radix sort of their keys, :func:`~semantic3d.spatial.voxels.key_order`; voxels described
+in parallel, each voxel's sum alone), with the same results on any number of threads.
 """
 
 from __future__ import annotations
@@ -29,6 +31,8 @@ from semantic3d.spatial.voxels import (
     ExtentError,
     compute_cells,
     grid_origin,
+    key_order,
+    key_runs,
     pack_keys,
 )
 
@@ -135,18 +139,16 @@ def build_pyramid(
 
     cells = compute_cells(points, origin=anchor, voxel_size_m=base_voxel_size_m)
     keys = pack_keys(cells)
-    order = np.argsort(keys, kind="stable")
-    sorted_keys = keys[order]
-    starts = _group_starts(sorted_keys)
+    order = key_order(keys)
+    starts = key_runs(keys, order)
     point_voxel = np.empty(n, np.int64)
-    point_voxel[order] = np.repeat(np.arange(starts.size - 1), np.diff(starts))
-    level_xyz = _group_means(points - anchor, order, starts)
-    level_values = _group_means(values, order, starts)
-    level_cells = cells[order[starts[:-1]]]
-    level_keys = sorted_keys[starts[:-1]]
+    level_xyz, level_values, level_cells, level_keys = _describe_runs(
+        points, anchor, values, cells, keys, order, starts, point_voxel
+    )
 
     levels: list[PyramidLevel] = []
     size = base_voxel_size_m
+    no_shift = np.zeros(3, np.float64)
     for level in range(n_levels):
         if level == n_levels - 1:
             parent = np.full(level_keys.size, -1, np.int64)
@@ -154,52 +156,71 @@ def build_pyramid(
                 PyramidLevel(size, level_cells, level_keys, level_xyz, level_values, parent)
             )
             break
-        parent_cells = level_cells >> 1
+        parent_cells = _halved(level_cells)
         parent_keys = pack_keys(parent_cells)
-        order = np.argsort(parent_keys, kind="stable")
-        sorted_parent_keys = parent_keys[order]
-        starts = _group_starts(sorted_parent_keys)
+        order = key_order(parent_keys)
+        starts = key_runs(parent_keys, order)
         parent = np.empty(level_keys.size, np.int64)
-        parent[order] = np.repeat(np.arange(starts.size - 1), np.diff(starts))
         levels.append(PyramidLevel(size, level_cells, level_keys, level_xyz, level_values, parent))
-        level_xyz = _group_means(level_xyz, order, starts)
-        level_values = _group_means(level_values, order, starts)
-        level_cells = parent_cells[order[starts[:-1]]]
-        level_keys = sorted_parent_keys[starts[:-1]]
+        level_xyz, level_values, level_cells, level_keys = _describe_runs(
+            level_xyz, no_shift, level_values, parent_cells, parent_keys, order, starts, parent
+        )
         size *= 2.0
     return VoxelPyramid(origin=anchor, levels=tuple(levels), point_voxel=point_voxel)
 
 
-def _group_starts(sorted_keys: NDArray[np.int64]) -> NDArray[np.int64]:
-    """Start offsets of the runs of equal keys, with the total length appended."""
-    if sorted_keys.size == 0:
-        return np.zeros(1, np.int64)
-    change = np.flatnonzero(sorted_keys[1:] != sorted_keys[:-1]) + 1
-    return np.concatenate(([0], change, [sorted_keys.size])).astype(np.int64)
-
-
-def _group_means(
-    values: NDArray[np.float64], order: NDArray[np.int64], starts: NDArray[np.int64]
-) -> NDArray[np.float64]:
-    """Mean of ``values[order]`` over each run ``starts[i]:starts[i+1]``, summed in order."""
-    return _group_means_kernel(np.ascontiguousarray(values), order, starts)
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _halved(cells: NDArray[np.int64]) -> NDArray[np.int64]:  # pragma: no cover - compiled
+    """``cells >> 1``: the cells of the next level's voxels."""
+    out = np.empty_like(cells)
+    for i in numba.prange(cells.shape[0]):
+        for axis in range(3):
+            out[i, axis] = cells[i, axis] >> 1
+    return out
 
 
 # Hand-written: numpy's reductions sum pairwise or by strided blocks whose order depends on
-# the array layout; one sequential loop per group fixes the order (bitwise equal tiles).
-@numba.njit(cache=True, nogil=True)
-def _group_means_kernel(
-    values: NDArray[np.float64], order: NDArray[np.int64], starts: NDArray[np.int64]
-) -> NDArray[np.float64]:  # pragma: no cover - compiled
-    n_groups = starts.size - 1
-    n_columns = values.shape[1]
-    out = np.empty((n_groups, n_columns), np.float64)
-    for group in range(n_groups):
-        begin = starts[group]
-        end = starts[group + 1]
-        for column in range(n_columns):
+# the array layout; one sequential loop per voxel fixes the order (bitwise equal tiles),
+# and the voxels are described on every thread at once.
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _describe_runs(
+    xyz: NDArray[np.float64],
+    shift: NDArray[np.float64],
+    values: NDArray[np.float64],
+    cells: NDArray[np.int64],
+    keys: NDArray[np.int64],
+    order: NDArray[np.int64],
+    starts: NDArray[np.int64],
+    member_run: NDArray[np.int64],
+) -> tuple[
+    NDArray[np.float64], NDArray[np.float64], NDArray[np.int64], NDArray[np.int64]
+]:  # pragma: no cover - compiled
+    """The voxels made of the runs ``order[starts[i]:starts[i+1]]`` of rows: the mean of
+    ``xyz - shift`` and of ``values`` over each run (summed in run order), its cells and
+    key (those of its first row); ``member_run[row]`` is set to the run of every row."""
+    n_runs = starts.size - 1
+    n_values = values.shape[1]
+    out_xyz = np.empty((n_runs, 3), np.float64)
+    out_values = np.empty((n_runs, n_values), np.float64)
+    out_cells = np.empty((n_runs, 3), np.int64)
+    out_keys = np.empty(n_runs, np.int64)
+    for run in numba.prange(n_runs):
+        begin = starts[run]
+        end = starts[run + 1]
+        for i in range(begin, end):
+            member_run[order[i]] = run
+        for column in range(3):
+            total = 0.0
+            for i in range(begin, end):
+                total += xyz[order[i], column] - shift[column]
+            out_xyz[run, column] = total / (end - begin)
+        for column in range(n_values):
             total = 0.0
             for i in range(begin, end):
                 total += values[order[i], column]
-            out[group, column] = total / (end - begin)
-    return out
+            out_values[run, column] = total / (end - begin)
+        first = order[begin]
+        for axis in range(3):
+            out_cells[run, axis] = cells[first, axis]
+        out_keys[run] = keys[first]
+    return out_xyz, out_values, out_cells, out_keys

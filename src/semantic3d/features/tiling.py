@@ -283,9 +283,21 @@ class TiledScan:
     def _build_pyramids(self) -> None:
         """Every tile's pyramid, written to the scratch folder: tiles at the same time on
         the thread budget's threads, the largest first (the last to end is then a small
-        one); the level sizes are summed."""
+        one), each tile's kernels on a share of the threads in proportion to its points
+        (the densest tile, near the scanner, holds over half of them); the level sizes are
+        summed."""
+        n_threads = thread_budget()
+        total = max(1, self.n_points)
         order = sorted(self.tiles, key=lambda tile: (-self.store.count(tile), tile))
-        for sizes in map_in_threads(self._build_pyramid, order, name="s3d-pyramid"):
+        for sizes in map_in_threads(
+            self._build_pyramid,
+            order,
+            n_threads=n_threads,
+            numba_threads_per_task=lambda tile: math.ceil(
+                n_threads * self.store.count(tile) / total
+            ),
+            name="s3d-pyramid",
+        ):
             for number, n_voxels in enumerate(sizes):
                 self._level_sizes[number] += n_voxels
 

@@ -233,3 +233,180 @@ def select_in_box(
             found[count] = i
             count += 1
     return found[:count]
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def cell_coordinates(
+    xyz: np.ndarray, origin: np.ndarray, size: float, limit: float
+) -> tuple[np.ndarray, int]:  # pragma: no cover - compiled
+    """``(n, 3)`` int64 ``floor((xyz - origin) / size)`` (numpy's arithmetic), and how many
+    coordinates fall outside ``-limit..limit`` (or are not numbers); those are left 0."""
+    n = xyz.shape[0]
+    cells = np.empty((n, 3), np.int64)
+    outside = 0
+    for i in nb.prange(n):
+        for axis in range(3):
+            cell = np.floor((xyz[i, axis] - origin[axis]) / size)
+            if cell >= -limit and cell <= limit:
+                cells[i, axis] = np.int64(cell)
+            else:
+                cells[i, axis] = 0
+                outside += 1
+    return cells, outside
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def packed_keys(cells: np.ndarray, offset: int, bits: int) -> np.ndarray:  # pragma: no cover
+    """``((x + offset) << 2 bits) | ((y + offset) << bits) | (z + offset)`` of every row."""
+    keys = np.empty(cells.shape[0], np.int64)
+    for i in nb.prange(cells.shape[0]):
+        keys[i] = (
+            ((cells[i, 0] + offset) << (2 * bits))
+            | ((cells[i, 1] + offset) << bits)
+            | (cells[i, 2] + offset)
+        )
+    return keys
+
+
+_RADIX_BITS = 11  # the most bits sorted in one pass (2048 slots)
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def _key_spans(keys: np.ndarray, bits: int) -> np.ndarray:  # pragma: no cover - compiled
+    """Smallest and largest x, y and z parts of the packed keys: ``[lo x, lo y, lo z, hi x,
+    hi y, hi z]``."""
+    n = keys.shape[0]
+    n_blocks = max(1, n // _BLOCK_POINTS)
+    per_block = -(-n // n_blocks)
+    mask = (np.int64(1) << bits) - 1
+    partial = np.empty((n_blocks, 6), np.int64)
+    for block in nb.prange(n_blocks):
+        low_x = low_y = low_z = np.int64(1) << 62
+        high_x = high_y = high_z = np.int64(-1)
+        for i in range(block * per_block, min(n, (block + 1) * per_block)):
+            key = keys[i]
+            x, y, z = key >> (2 * bits), (key >> bits) & mask, key & mask
+            low_x, low_y, low_z = min(low_x, x), min(low_y, y), min(low_z, z)
+            high_x, high_y, high_z = max(high_x, x), max(high_y, y), max(high_z, z)
+        partial[block, 0], partial[block, 1], partial[block, 2] = low_x, low_y, low_z
+        partial[block, 3], partial[block, 4], partial[block, 5] = high_x, high_y, high_z
+    spans = partial[0].copy()
+    for block in range(1, n_blocks):
+        for part in range(3):
+            spans[part] = min(spans[part], partial[block, part])
+            spans[3 + part] = max(spans[3 + part], partial[block, 3 + part])
+    return spans
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def _compact_keys(
+    keys: np.ndarray, bits: int, spans: np.ndarray, y_shift: int, x_shift: int
+) -> np.ndarray:  # pragma: no cover - compiled
+    """The keys with each part less its smallest, packed tight (the same order)."""
+    mask = (np.int64(1) << bits) - 1
+    compact = np.empty(keys.shape[0], np.int64)
+    for i in nb.prange(keys.shape[0]):
+        key = keys[i]
+        compact[i] = (
+            (((key >> (2 * bits)) - spans[0]) << x_shift)
+            | ((((key >> bits) & mask) - spans[1]) << y_shift)
+            | ((key & mask) - spans[2])
+        )
+    return compact
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def _radix_digits(
+    compact: np.ndarray, shift: int, mask: int, out: np.ndarray
+) -> None:  # pragma: no cover
+    for i in nb.prange(compact.shape[0]):
+        out[i] = (compact[i] >> shift) & mask
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def _radix_place(
+    destination: np.ndarray,
+    compact: np.ndarray,
+    order: np.ndarray,
+    out_compact: np.ndarray,
+    out_order: np.ndarray,
+) -> None:  # pragma: no cover - compiled
+    for i in nb.prange(destination.shape[0]):
+        out_compact[destination[i]] = compact[i]
+        out_order[destination[i]] = order[i]
+
+
+@nb.njit(cache=True, nogil=True)
+def key_order(keys: np.ndarray, bits: int, n_threads: int) -> np.ndarray:  # pragma: no cover
+    """``np.argsort(keys, kind="stable")`` of packed keys (three parts of ``bits`` bits),
+    on every thread: a least-significant-digit radix sort of the keys with each part less
+    its smallest (so only the bits the keys span are sorted), each pass a stable counting
+    sort (:func:`stable_destinations`). A stable order is unique: it does not depend on
+    the threads."""
+    n = keys.shape[0]
+    order = np.arange(n).astype(np.int64)
+    if n < 2:
+        return order
+    spans = _key_spans(keys, bits)
+    z_bits = _bit_length(spans[5] - spans[2])
+    y_bits = _bit_length(spans[4] - spans[1])
+    x_bits = _bit_length(spans[3] - spans[0])
+    total = x_bits + y_bits + z_bits
+    if total == 0:
+        return order
+    compact = _compact_keys(keys, bits, spans, z_bits, y_bits + z_bits)
+    n_passes = -(-total // _RADIX_BITS)
+    digit_bits = -(-total // n_passes)
+    mask = (1 << digit_bits) - 1
+    digits = np.empty(n, np.int64)
+    other_compact = np.empty(n, np.int64)
+    other_order = np.empty(n, np.int64)
+    for step in range(n_passes):
+        _radix_digits(compact, step * digit_bits, mask, digits)
+        destination, _ = stable_destinations(digits, mask + 1, n_threads)
+        _radix_place(destination, compact, order, other_compact, other_order)
+        compact, other_compact = other_compact, compact
+        order, other_order = other_order, order
+    return order
+
+
+@nb.njit(cache=True, nogil=True)
+def _bit_length(value: int) -> int:  # pragma: no cover - compiled
+    length = 0
+    while value > 0:
+        value >>= 1
+        length += 1
+    return length
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def run_starts(keys: np.ndarray, order: np.ndarray) -> np.ndarray:  # pragma: no cover
+    """Where each run of equal keys starts in ``keys[order]`` (``order`` sorting them),
+    with the total length appended; blocks of the order on every thread."""
+    n = order.shape[0]
+    if n == 0:
+        return np.zeros(1, np.int64)
+    n_blocks = max(1, n // _BLOCK_POINTS)
+    per_block = -(-n // n_blocks)
+    counts = np.zeros(n_blocks, np.int64)
+    for block in nb.prange(n_blocks):
+        count = 0
+        for j in range(max(1, block * per_block), min(n, (block + 1) * per_block)):
+            if keys[order[j]] != keys[order[j - 1]]:
+                count += 1
+        counts[block] = count
+    firsts = np.empty(n_blocks, np.int64)
+    running = 1  # the first run starts at 0
+    for block in range(n_blocks):
+        firsts[block] = running
+        running += counts[block]
+    starts = np.empty(running + 1, np.int64)
+    starts[0] = 0
+    starts[running] = n
+    for block in nb.prange(n_blocks):
+        at = firsts[block]
+        for j in range(max(1, block * per_block), min(n, (block + 1) * per_block)):
+            if keys[order[j]] != keys[order[j - 1]]:
+                starts[at] = j
+                at += 1
+    return starts

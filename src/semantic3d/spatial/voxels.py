@@ -30,6 +30,8 @@ __all__ = [
     "ExtentError",
     "compute_cells",
     "grid_origin",
+    "key_order",
+    "key_runs",
     "pack_keys",
 ]
 
@@ -60,23 +62,61 @@ def grid_origin(first_point: ArrayLike, *, coarsest_voxel_size_m: float) -> NDAr
 def compute_cells(
     xyz: NDArray[np.float64], *, origin: NDArray[np.float64], voxel_size_m: float
 ) -> NDArray[np.int64]:
-    """``(n, 3)`` int64 integer voxel coordinates of points relative to ``origin``.
+    """``(n, 3)`` int64 integer voxel coordinates of points relative to ``origin``
+    (``floor((xyz - origin) / voxel_size_m)``, on every thread).
 
     Raises :class:`ExtentError` when a point lies more than ±2**20 voxels from the origin
-    (the range packed keys hold), naming the offending extent.
+    (the range packed keys hold), or has a coordinate that is not a number, naming the
+    offending extent.
     """
-    cells = np.floor((xyz - origin) / voxel_size_m)
-    if cells.size and (cells.min() < -MAX_CELL or cells.max() > MAX_CELL):
+    from semantic3d.spatial._kernels import cell_coordinates
+
+    points = np.ascontiguousarray(xyz, dtype=np.float64).reshape(-1, 3)
+    anchor = np.ascontiguousarray(origin, dtype=np.float64).reshape(3)
+    cells, outside = cell_coordinates(points, anchor, float(voxel_size_m), float(MAX_CELL))
+    if outside:
         extent = MAX_CELL * voxel_size_m
         raise ExtentError(
-            f"points reach {np.abs(xyz - origin).max():.1f} m from the grid origin: expected "
-            f"at most {extent:.0f} m (2**20 voxels of {voxel_size_m} m); "
-            "use a larger base voxel size or split the scan"
+            f"points reach {np.abs(points - anchor).max():.1f} m from the grid origin: expected "
+            f"at most {extent:.0f} m (2**20 voxels of {voxel_size_m} m) and finite "
+            "coordinates; use a larger base voxel size or split the scan"
         )
-    return cells.astype(np.int64)
+    result: NDArray[np.int64] = cells
+    return result
 
 
 def pack_keys(cells: NDArray[np.int64]) -> NDArray[np.int64]:
     """Pack ``(n, 3)`` cells into int64 keys ordered x, then y, then z."""
-    shifted = cells + CELL_OFFSET
-    return (shifted[:, 0] << (2 * CELL_BITS)) | (shifted[:, 1] << CELL_BITS) | shifted[:, 2]
+    from semantic3d.spatial._kernels import packed_keys
+
+    keys: NDArray[np.int64] = packed_keys(
+        np.ascontiguousarray(cells, dtype=np.int64).reshape(-1, 3), CELL_OFFSET, CELL_BITS
+    )
+    return keys
+
+
+def key_order(keys: NDArray[np.int64]) -> NDArray[np.int64]:
+    """The order that sorts packed keys, equal keys in their order: what
+    ``np.argsort(keys, kind="stable")`` gives, on every thread of the budget (a radix sort
+    of the bits the keys span; hand-written because numpy sorts on one thread, and
+    building a scan's voxel pyramid is mostly this sort)."""
+    import numba
+
+    from semantic3d.spatial._kernels import key_order as radix_order
+
+    order: NDArray[np.int64] = radix_order(
+        np.ascontiguousarray(keys, dtype=np.int64), CELL_BITS, numba.get_num_threads()
+    )
+    return order
+
+
+def key_runs(keys: NDArray[np.int64], order: NDArray[np.int64]) -> NDArray[np.int64]:
+    """Where each run of equal keys starts in ``keys[order]`` (``order`` from
+    :func:`key_order`), with ``len(keys)`` appended: run ``i`` is
+    ``order[starts[i]:starts[i + 1]]``."""
+    from semantic3d.spatial._kernels import run_starts
+
+    starts: NDArray[np.int64] = run_starts(
+        np.ascontiguousarray(keys, dtype=np.int64), np.ascontiguousarray(order, dtype=np.int64)
+    )
+    return starts
