@@ -20,6 +20,7 @@ from semantic3d.core.threads import (
     map_in_threads,
     numba_threads,
     set_thread_limit,
+    take_free_threads,
     thread_budget,
     thread_limit,
 )
@@ -87,6 +88,55 @@ def test_tasks_running_at_once_never_hold_more_threads_than_the_map() -> None:
     done = list(map_in_threads(task, range(12), n_threads=4, numba_threads_per_task=3))
     assert done == list(range(12))
     assert running[1] == 3  # one task of 3 threads at a time on a map of 4
+
+
+def test_the_last_tasks_take_the_threads_the_others_gave_back() -> None:
+    """While tasks wait for their turn no task takes more; once every task has started,
+    a task asking takes a share of the free threads (its budget and numba's count grow);
+    the threads held at once never exceed the map's."""
+    import numba
+
+    lock = threading.Lock()
+    held = [0, 0]  # now, most
+    grown: dict[int, tuple[int, int]] = {}
+    asked = threading.Event()  # the long task asked before any other task ended
+    quick_done = threading.Event()
+    ended = [0]
+
+    def hold(count: int) -> None:
+        with lock:
+            held[0] += count
+            held[1] = max(held[1], held[0])
+
+    def task(item: int) -> int:
+        hold(thread_budget())
+        if item == 0:  # the long task: asks while others wait, then after they all ended
+            early = take_free_threads()
+            asked.set()
+            quick_done.wait(10)
+            time.sleep(0.05)
+            late = take_free_threads()
+            hold(late - early)
+            grown[item] = (early, late)
+            assert thread_budget() == late
+            assert numba.get_num_threads() == min(late, numba.config.NUMBA_NUM_THREADS)
+        else:
+            asked.wait(10)
+            time.sleep(0.002)
+        with lock:
+            held[0] -= thread_budget()
+            if item:
+                ended[0] += 1
+                if ended[0] == 5:
+                    quick_done.set()
+        return item
+
+    with thread_limit(4):
+        done = list(map_in_threads(task, range(6), n_threads=4, ordered=False))
+    assert sorted(done) == list(range(6))
+    assert grown[0] == (1, 4)  # 1 while tasks were to start; all 4 once they had ended
+    assert held == [0, 4]
+    assert take_free_threads() == thread_budget()  # outside a map: the budget
 
 
 def test_read_ahead_gives_the_items_in_order_and_stops_with_the_consumer() -> None:

@@ -40,6 +40,7 @@ __all__ = [
     "numba_threads",
     "serial_section",
     "set_thread_limit",
+    "take_free_threads",
     "thread_budget",
     "thread_limit",
 ]
@@ -246,6 +247,7 @@ def map_in_threads(
                     item = next(iterator)
                 except StopIteration:
                     exhausted = True
+                    tokens.draining = True  # the last tasks may take threads given back
                     break
                 pending.append(pool.submit(run, item, tokens.ticket()))
             if not pending:
@@ -298,6 +300,8 @@ class _Tokens:
         self.free = n
         self.turn = 0
         self.tickets = 0
+        self.running = 0  # tasks holding tokens
+        self.draining = False  # every item of the map handed out
         self.open = True
         self.condition = threading.Condition()
 
@@ -322,6 +326,7 @@ class _Tokens:
             )
             self.free -= count
             self.turn += 1
+            self.running += 1
             self.condition.notify_all()
         _task.held = [self, count]
         try:
@@ -329,7 +334,19 @@ class _Tokens:
         finally:
             held = _task.held
             _task.held = None
+            with self.condition:
+                self.running -= 1
             self.give_back(held[1])
+
+    def take_spare(self) -> int:
+        """Once every task of the map has started: a running task's share of the free
+        tokens (taken; 0 while tasks still wait for theirs)."""
+        with self.condition:
+            if not self.draining or self.turn != self.tickets or self.free <= 0:
+                return 0
+            taken = -(-self.free // max(1, self.running))
+            self.free -= taken
+            return taken
 
     def give_back(self, count: int) -> None:
         with self.condition:
@@ -367,6 +384,25 @@ def serial_section() -> Iterator[None]:
         held[1] = 1 + tokens.take_up_to(count - 1)
         _set_numba_threads_here(held[1])
         _task.budget = held[1]
+
+
+def take_free_threads() -> int:
+    """In a thread map's task, once the map has started its last task: take a share of the
+    threads that finished tasks gave back, for numba's kernels and :func:`thread_budget` in
+    this task from here on (its tokens, given back when it ends). A map's last tasks then
+    go on with the threads the others left, instead of each on its own share while the
+    rest idle. Call it between steps of a long task. Returns this task's thread count
+    (the budget outside a map's task). Results do not depend on it."""
+    held = getattr(_task, "held", None)
+    if held is None:
+        return thread_budget()
+    tokens, count = held
+    taken = tokens.take_spare()
+    if taken:
+        held[1] = count + taken
+        _set_numba_threads_here(held[1])
+        _task.budget = held[1]
+    return int(held[1])
 
 
 def _task_threads(per_task: Callable[[T], int] | int, item: T, ceiling: int) -> int:

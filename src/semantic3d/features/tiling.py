@@ -42,7 +42,12 @@ from numpy.typing import ArrayLike, NDArray
 
 from semantic3d.core.errors import ShapeError
 from semantic3d.core.pointcloud import PointCloud
-from semantic3d.core.threads import iter_ahead, map_in_threads, thread_budget
+from semantic3d.core.threads import (
+    iter_ahead,
+    map_in_threads,
+    take_free_threads,
+    thread_budget,
+)
 from semantic3d.features._row_kernels import (
     exact_rows,
     put_rows,
@@ -509,6 +514,7 @@ class TiledScan:
         neighbour_keys = np.empty((voxels.size, config.k_neighbours), np.int64)
         ancestor = voxels
         for number in range(config.n_levels):
+            take_free_threads()  # a map's last tiles go on with the threads others left
             if number:
                 ancestor = pyramid.levels[number - 1].parent[ancestor]
 

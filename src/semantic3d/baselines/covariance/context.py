@@ -25,7 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from semantic3d.core.errors import ConfigError, ShapeError
-from semantic3d.core.threads import map_in_threads, serial_section
+from semantic3d.core.threads import map_in_threads, serial_section, take_free_threads
 from semantic3d.spatial.grid import quadtree_leaves
 
 __all__ = [
@@ -379,6 +379,7 @@ def label_rows_by_group(
         unary = unary_costs(proba[rows])  # in the group's task: on its thread
         return alpha_expansion(unary, group_edges, weight=potts_weight, max_sweeps=max_sweeps)
 
+    take_free_threads()  # in a map's last tasks: the threads the others left
     # groups cut at the same time (the cuts release the GIL); each group's labels alone.
     # The largest first: the last cut to end is then a small one, not the densest tile's
     # alone on one thread while the others wait (a twelfth of a 2 M-point scan's time).

@@ -25,6 +25,7 @@ from semantic3d.baselines.covariance.context import (
 from semantic3d.baselines.covariance.forest import CompiledClassifier
 from semantic3d.core.errors import ShapeError
 from semantic3d.core.pointcloud import PointCloud
+from semantic3d.core.threads import take_free_threads
 from semantic3d.features.multiscale import FeatureTable
 from semantic3d.features.pyramid import grid_origin
 from semantic3d.spatial.grid import TileGrid
@@ -234,6 +235,7 @@ class CovarianceModel:
             )
         if values.shape[0] == 0:
             return np.empty(0, np.uint8)
+        take_free_threads()  # in a map's last tasks: the threads the others left
         proba = self.classifier.compiled_.predict_proba(values)
         classes = np.asarray(self.classifier.classes_, dtype=np.uint8)
         context = self.context
