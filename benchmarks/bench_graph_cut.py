@@ -18,12 +18,14 @@ Contenders, each in its own process (wall time and peak RSS of that process):
 3. ``arc pass per move (floor)``: one read of every arc's head, sister and residual and
    every node's terminal capacity per move, summed with numpy: memory traffic that any
    cut must at least spend, not a cut.
-4. ``semantic3d, tiles cut in squares``: what ``predict`` runs by default
-   (:func:`~semantic3d.baselines.covariance.context.label_rows_by_group`): the graph cut
-   tile by tile, a tile of more than ``[context] max_graph_nodes`` voxels in quadtree
-   squares of at most that many, the pieces on ``--threads`` threads at once. Not the
-   same graph (no edge between two pieces): the share of labels that differ from the
-   whole graph's is printed.
+4. ``semantic3d, tiles cut whole``: the context step as ``predict`` ran it before
+   (:func:`~semantic3d.baselines.covariance.context.label_rows_by_group` with
+   ``max_group_rows=0``): each tile's edges taken from the neighbour lists and its graph
+   cut alone, the tiles on ``--threads`` threads at once.
+5. ``semantic3d, tiles cut in squares``: what ``predict`` runs by default: the same, a
+   tile of more than ``[context] max_graph_nodes`` voxels cut in quadtree squares of at
+   most that many. Not the same graph (no edge between two pieces): the share of labels
+   that differ from the tiles' is printed.
 
 The first two cuts give the same labels (checked here, and in the tests). Rates count
 graph nodes times moves per second.
@@ -139,7 +141,17 @@ def _floor(unary: np.ndarray, edges: np.ndarray, weight: float) -> np.ndarray:
     return np.array([total])
 
 
+def _tiles(unary: np.ndarray, edges: np.ndarray, weight: float) -> np.ndarray:
+    return _by_group(weight, 0)
+
+
 def _squares(unary: np.ndarray, edges: np.ndarray, weight: float) -> np.ndarray:
+    from semantic3d.baselines.covariance.config import ContextConfig
+
+    return _by_group(weight, ContextConfig().max_graph_nodes)
+
+
+def _by_group(weight: float, max_group_rows: int) -> np.ndarray:
     from semantic3d.baselines.covariance.config import ContextConfig
     from semantic3d.baselines.covariance.context import label_rows_by_group
 
@@ -153,7 +165,7 @@ def _squares(unary: np.ndarray, edges: np.ndarray, weight: float) -> np.ndarray:
         max_sweeps=1,
         neighbours=_PIECES["lists"],
         row_cell=_PIECES["row_cell"],
-        max_group_rows=context.max_graph_nodes,
+        max_group_rows=max_group_rows,
     )
 
 
@@ -161,6 +173,7 @@ CONTENDERS = {
     "semantic3d alpha_expansion": _compiled,
     "PyMaxflow moves": _pymaxflow,
     "arc pass per move (floor)": _floor,
+    "semantic3d, tiles cut whole": _tiles,
     "semantic3d, tiles cut in squares": _squares,
 }
 
@@ -177,7 +190,7 @@ def main() -> None:
         set_thread_limit(args.threads)
         name, graph, out = args.child
         unary, edges, weight = _load(Path(graph))
-        if name == "semantic3d, tiles cut in squares":
+        if name.startswith("semantic3d, tiles"):
             with np.load(graph) as data:
                 _PIECES.update(
                     {key: data[key] for key in ("proba", "lists", "row_tile", "row_cell")}
@@ -207,12 +220,16 @@ def main() -> None:
             labels[name] = np.load(out)
         whole = labels["semantic3d alpha_expansion"]
         same = bool(np.array_equal(whole, labels["PyMaxflow moves"]))
-        changed = float(np.mean(labels["semantic3d, tiles cut in squares"] != whole))
+        changed = float(
+            np.mean(
+                labels["semantic3d, tiles cut in squares"] != labels["semantic3d, tiles cut whole"]
+            )
+        )
     title = (
         f"alpha-expansion, one sweep: {unary.shape[0]:,} voxels, {edges.shape[0]:,} edges, "
         f"{unary.shape[1]} classes ({args.points:,} simulated points), {args.threads} "
         f"thread(s); same labels: {same}; tiles cut in squares: {100 * changed:.2f} % of "
-        "the labels differ"
+        "the tiles' labels differ"
     )
     print(table(title, "node-moves", rows, baseline="PyMaxflow moves"))
     OUT.mkdir(exist_ok=True)

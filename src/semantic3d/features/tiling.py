@@ -417,6 +417,7 @@ class TiledScan:
         def compute(number: int) -> None:
             if not config.per_point:
                 self._whole_level(number)
+            take_free_threads()  # the last levels go on with the threads others left
             self._first_halo_m(number)
 
         for _ in map_in_threads(

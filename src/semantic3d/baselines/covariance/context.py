@@ -400,10 +400,11 @@ def _split_groups(
     max_rows: int,
 ) -> tuple[NDArray[np.int64], int]:
     """Groups (``inverse``, numbered ``0..n_groups-1``) of more than ``max_rows`` rows cut
-    into the quadtree squares of their rows' cells (:func:`~semantic3d.spatial.grid.
-    quadtree_leaves`): a square of more rows is cut into its quadrants, down to the
-    squares of :data:`GRAPH_CELL_DEPTH`. The first square keeps the group's number, the
-    others are numbered after the groups. Depends only on each group's rows and cells."""
+    into the quadtree squares of their rows' cells
+    (:func:`~semantic3d.spatial.grid.quadtree_leaves`): a square of more rows is cut into
+    its quadrants, down to the squares of :data:`GRAPH_CELL_DEPTH`. The first square keeps
+    the group's number, the others are numbered after the groups. Depends only on each
+    group's rows and cells."""
     sizes = np.bincount(inverse, minlength=n_groups)
     large = np.flatnonzero(sizes > max_rows)
     if not large.size:
