@@ -61,3 +61,17 @@ def test_cells_are_numpys_floor(xyz: np.ndarray, size: float) -> None:
     origin = np.array([1.5, -2.25, 0.1])
     expected = np.floor((xyz - origin) / size).astype(np.int64)
     np.testing.assert_array_equal(compute_cells(xyz, origin=origin, voxel_size_m=size), expected)
+
+
+def test_cells_and_keys_of_a_wrong_shape_are_named() -> None:
+    import pytest
+
+    from semantic3d.core.errors import ShapeError
+
+    with pytest.raises(ShapeError, match=r"xyz: expected \(n, 3\) coordinates, found \(4, 2\)"):
+        compute_cells(np.zeros((4, 2)), origin=np.zeros(3), voxel_size_m=0.1)
+    with pytest.raises(ShapeError, match=r"cells: expected \(n, 3\) cells, found \(3,\)"):
+        pack_keys(np.zeros(3, np.int64))
+    # a strided view (a slice of wider cells) packs like its copy
+    wide = np.arange(24, dtype=np.int64).reshape(4, 6)
+    np.testing.assert_array_equal(pack_keys(wide[:, ::2]), pack_keys(wide[:, ::2].copy()))

@@ -21,7 +21,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from semantic3d.core.errors import Semantic3DError
+from semantic3d.core.errors import Semantic3DError, ShapeError
 
 __all__ = [
     "CELL_BITS",
@@ -71,7 +71,9 @@ def compute_cells(
     """
     from semantic3d.spatial._kernels import cell_coordinates
 
-    points = np.ascontiguousarray(xyz, dtype=np.float64).reshape(-1, 3)
+    points = np.ascontiguousarray(xyz, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ShapeError(f"xyz: expected (n, 3) coordinates, found {points.shape}")
     anchor = np.ascontiguousarray(origin, dtype=np.float64).reshape(3)
     cells, outside = cell_coordinates(points, anchor, float(voxel_size_m), float(MAX_CELL))
     if outside:
@@ -89,9 +91,10 @@ def pack_keys(cells: NDArray[np.int64]) -> NDArray[np.int64]:
     """Pack ``(n, 3)`` cells into int64 keys ordered x, then y, then z."""
     from semantic3d.spatial._kernels import packed_keys
 
-    keys: NDArray[np.int64] = packed_keys(
-        np.ascontiguousarray(cells, dtype=np.int64).reshape(-1, 3), CELL_OFFSET, CELL_BITS
-    )
+    cells = np.ascontiguousarray(cells, dtype=np.int64)
+    if cells.ndim != 2 or cells.shape[1] != 3:
+        raise ShapeError(f"cells: expected (n, 3) cells, found {cells.shape}")
+    keys: NDArray[np.int64] = packed_keys(cells, CELL_OFFSET, CELL_BITS)
     return keys
 
 
