@@ -83,16 +83,7 @@ class TileGrid:
         """``(n, 2)`` int64 tile index of each point of ``(n, >=2)`` coordinates."""
         from semantic3d.spatial._kernels import tile_keys
 
-        points = np.asarray(xyz)
-        if points.ndim != 2 or points.shape[1] < 2:
-            raise ShapeError(f"xyz: expected (n, >=2) coordinates, found {points.shape}")
-        keys: NDArray[np.int64] = tile_keys(
-            np.ascontiguousarray(points, dtype=np.float64),
-            float(self.origin_xy[0]),
-            float(self.origin_xy[1]),
-            float(self.cell_size_m),
-            int(self.cells_per_tile),
-        )
+        keys: NDArray[np.int64] = tile_keys(_coordinates(xyz), *self._numbers())
         return keys
 
     def cell_codes(self, xyz: NDArray[np.float64], *, depth: int) -> NDArray[np.uint16]:
@@ -109,18 +100,13 @@ class TileGrid:
 
         if not 0 <= depth <= MAX_CELL_DEPTH:
             raise ShapeError(f"depth: expected 0..{MAX_CELL_DEPTH}, found {depth}")
-        points = np.asarray(xyz)
-        if points.ndim != 2 or points.shape[1] < 2:
-            raise ShapeError(f"xyz: expected (n, >=2) coordinates, found {points.shape}")
-        codes: NDArray[np.uint16] = tile_cell_codes(
-            np.ascontiguousarray(points, dtype=np.float64),
-            float(self.origin_xy[0]),
-            float(self.origin_xy[1]),
-            float(self.cell_size_m),
-            int(self.cells_per_tile),
-            int(depth),
-        )
+        codes: NDArray[np.uint16] = tile_cell_codes(_coordinates(xyz), *self._numbers(), int(depth))
         return codes
+
+    def _numbers(self) -> tuple[float, float, float, int]:
+        """The grid as the kernels take it: origin x, origin y, cell size, cells per tile."""
+        x0, y0 = self.origin_xy
+        return float(x0), float(y0), float(self.cell_size_m), int(self.cells_per_tile)
 
     def tile_bounds(self, tile: TileKey) -> Bounds:
         """``(x_min, y_min, x_max, y_max)`` of ``tile``."""
@@ -150,6 +136,14 @@ class TileGrid:
             cell_size_m=float(data["cell_size_m"]),
             cells_per_tile=int(data["cells_per_tile"]),
         )
+
+
+def _coordinates(xyz: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``(n, >=2)`` coordinates as C-ordered float64 (checked)."""
+    points = np.asarray(xyz)
+    if points.ndim != 2 or points.shape[1] < 2:
+        raise ShapeError(f"xyz: expected (n, >=2) coordinates, found {points.shape}")
+    return np.ascontiguousarray(points, dtype=np.float64)
 
 
 def quadtree_leaves(codes: NDArray[np.integer], *, depth: int, max_count: int) -> NDArray[np.int64]:

@@ -58,6 +58,19 @@ def _with(model: CovarianceModel, **changes: object) -> CovarianceModel:
     return dataclasses.replace(model, config=dataclasses.replace(model.config, **changes))
 
 
+def _shuffled(points: PointCloud, *, seed: int) -> tuple[np.ndarray, PointCloud]:
+    """The points in a random order, the first kept first (it anchors the grids)."""
+    order = np.concatenate([[0], 1 + np.random.default_rng(seed).permutation(points.n_points - 1)])
+    labels = None if points.labels is None else points.labels[order]
+    shuffled = PointCloud(
+        xyz=points.xyz[order],
+        intensity=points.intensity[order],
+        rgb=points.rgb[order],
+        labels=labels,
+    )
+    return order, shuffled
+
+
 def _miou(truth: np.ndarray, predicted: np.ndarray) -> float:
     matrix = ConfusionMatrix()
     matrix.update(truth, predicted)
@@ -146,13 +159,7 @@ def test_context_lowers_the_energy_and_keeps_labels_in_input_order(
 
     # Shuffled input (the first point kept first: it anchors the grids): every point
     # keeps its label, so labels follow the input order.
-    order = np.concatenate([[0], 1 + np.random.default_rng(0).permutation(points.n_points - 1)])
-    shuffled = PointCloud(
-        xyz=points.xyz[order],
-        intensity=points.intensity[order],
-        rgb=points.rgb[order],
-        labels=points.labels[order],
-    )
+    order, shuffled = _shuffled(points, seed=0)
     np.testing.assert_array_equal(predict_cloud(model, shuffled), with_context[order])
 
     # Streamed and tiled prediction give the in-memory labels exactly.
@@ -211,10 +218,7 @@ def test_a_dense_tile_cut_in_squares_gives_the_same_labels_however_it_is_read(
     assert 0 < changed < 0.05
     assert _miou(points.labels, squares) >= _miou(points.labels, whole_tiles) - 0.02
 
-    order = np.concatenate([[0], 1 + np.random.default_rng(1).permutation(points.n_points - 1)])
-    shuffled = PointCloud(
-        xyz=points.xyz[order], intensity=points.intensity[order], rgb=points.rgb[order]
-    )
+    order, shuffled = _shuffled(points, seed=1)
     np.testing.assert_array_equal(predict_cloud(capped, shuffled), squares[order])
     with thread_limit(1):
         np.testing.assert_array_equal(predict_cloud(capped, points), squares)
