@@ -414,8 +414,9 @@ def _split_groups(
     for group in large.tolist():
         rows = np.flatnonzero(inverse == group)
         leaves = quadtree_leaves(cells[rows], depth=GRAPH_CELL_DEPTH, max_count=max_rows)
-        first_codes, rank = np.unique(leaves, return_inverse=True)
-        rank = rank.reshape(-1)
+        present = np.zeros(1 << (2 * GRAPH_CELL_DEPTH), np.bool_)  # by code: no sort
+        present[leaves] = True
+        rank = (np.cumsum(present) - 1)[leaves]
         split[rows] = np.where(rank == 0, group, n_groups + rank - 1)
-        n_groups += first_codes.size - 1
+        n_groups += int(np.count_nonzero(present)) - 1
     return split, n_groups
