@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 
 from semantic3d.core.errors import DataFormatError, ShapeError
 from semantic3d.core.pointcloud import PointCloud
+from semantic3d.core.threads import thread_limit
 from semantic3d.io.cache import write_cache
 from semantic3d.spatial import (
     TemporaryTileStore,
@@ -115,6 +116,36 @@ def test_spilling_to_disk_changes_nothing(tmp_path: Path) -> None:
     assert not list(tmp_path.glob(".*partial"))  # no staging folder left behind
 
 
+@pytest.mark.parametrize("buffer_points", [100, 1 << 20])
+def test_stores_are_sealed_the_same_on_any_number_of_threads(
+    tmp_path: Path, buffer_points: int
+) -> None:
+    # a dense tile among sparse ones: tiles are sealed at the same time, the dense one on
+    # several threads, each written at its place in the files
+    dense = _cloud(4_000, seed=7, extent=0.7)
+    cloud = PointCloud.concatenate([_cloud(2_000, seed=8), dense])
+    grid = TileGrid.square(1.5)
+    names = ("points.npy", "order.npy", "offsets.npy", "starts.npy", "keys.npy")
+    files = []
+    for n_threads in (1, 3):
+        with thread_limit(n_threads):
+            folder = tmp_path / f"threads{n_threads}"
+            chunks = _chunks(cloud, 700)
+            build_tile_store(chunks, folder, grid=grid, buffer_points=buffer_points)
+            files.append([(folder / name).read_bytes() for name in names])
+            with TemporaryTileStore(chunks, grid=grid, buffer_points=1 << 20) as memory:
+                assert memory.directory is None
+                stored = TileStore(folder)
+                for tile in stored.tiles:
+                    a, b = memory.read(tile, halo_m=0.4), stored.read(tile, halo_m=0.4)
+                    assert a.core.cloud.equals(b.core.cloud) and a.halo.cloud.equals(b.halo.cloud)
+                    np.testing.assert_array_equal(a.core.indices, b.core.indices)
+                    np.testing.assert_array_equal(a.halo.indices, b.halo.indices)
+    assert files[0] == files[1]
+    stored = TileStore(tmp_path / "threads3")
+    assert sum(stored.count(tile) for tile in stored.tiles) == cloud.n_points
+
+
 def test_sparse_tiles_far_apart(tmp_path: Path) -> None:
     """Two clusters 10 km apart in 1 m tiles: tile ids are renumbered, not allocated densely."""
     near, far = _cloud(200, seed=1), _cloud(200, seed=2)
@@ -182,12 +213,16 @@ def test_bad_input_is_refused(tmp_path: Path) -> None:
     bad.xyz[3, 0] = np.nan
     with pytest.raises(ShapeError, match="expected finite coordinates"):
         build_tile_store([bad], tmp_path / "b", grid=grid)
+    far = _cloud(10)
+    far.xyz[3, 1] = 1e12  # 2**31 tiles of 1 m apart: more than a chunk's tiles can number
+    with pytest.raises(ShapeError, match="expected points within 2147483648 tiles"):
+        build_tile_store([far], tmp_path / "d", grid=grid)
     with pytest.raises(ShapeError, match="cell_size_m: expected a positive size"):
         TileGrid.square(0.0)
     store = build_tile_store([_cloud(10)], tmp_path / "c", grid=grid)
     with pytest.raises(ShapeError, match="halo_m: expected a finite width"):
         store.read_halo(store.tiles[0], -1.0)
-    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+    assert not any((tmp_path / name).exists() for name in "abd")
 
 
 def test_damaged_stores_are_refused(tmp_path: Path) -> None:

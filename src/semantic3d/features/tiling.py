@@ -267,11 +267,13 @@ class TiledScan:
             cell_size_m=config.base_voxel_size_m,
             cells_per_tile=self.tile_cells,
         )
-        # the next chunks are read (parsed on their own thread) while these are binned;
-        # binning (compiled counting sorts) costs about half as much as parsing: a third
-        # of the threads bin, the rest parse
-        ahead = iter_ahead(stream, consumer_threads=max(1, thread_budget() // 3), name="s3d-spill")
-        store = build_tile_store(chain([first], ahead), self.workdir / "points", grid=grid)
+        # the next chunks are read (parsed on their own thread) while these are binned,
+        # the first among them; binning (compiled counting sorts) costs about half as much
+        # as parsing: a third of the threads bin, the rest parse
+        ahead = iter_ahead(
+            chain([first], stream), consumer_threads=max(1, thread_budget() // 3), name="s3d-spill"
+        )
+        store = build_tile_store(ahead, self.workdir / "points", grid=grid)
         logger.info("spilled %d points into %d tiles", store.n_points, len(store.tiles))
         return store
 

@@ -12,6 +12,8 @@ placed from the counts summed before them), so binning does not wait on one core
 
 from __future__ import annotations
 
+from typing import Any
+
 import numba as nb
 import numpy as np
 
@@ -143,6 +145,62 @@ def tile_keys(
 
 
 @nb.njit(cache=True, nogil=True, parallel=True)
+def tile_keys_extent(
+    xyz: np.ndarray,
+    origin_x: float,
+    origin_y: float,
+    cell_m: float,
+    cells_per_tile: int,
+    keep: np.ndarray,
+) -> tuple[np.ndarray, int, int, int, int, int]:  # pragma: no cover - compiled
+    """:func:`tile_keys` of every point, with the first row whose x or y is not finite
+    (``n`` when none; its keys are 0) and the least and greatest x and y keys of the
+    points ``keep`` marks (all when empty; the least above the greatest when none)."""
+    n = xyz.shape[0]
+    keys = np.empty((n, 2), np.int64)
+    every = keep.shape[0] == 0
+    bad = n
+    x_min = np.iinfo(np.int64).max
+    y_min = np.iinfo(np.int64).max
+    x_max = np.iinfo(np.int64).min
+    y_max = np.iinfo(np.int64).min
+    for i in nb.prange(n):
+        x, y = xyz[i, 0], xyz[i, 1]
+        kx = np.int64(0)
+        ky = np.int64(0)
+        if np.isfinite(x) and np.isfinite(y):
+            kx = np.int64(np.floor((x - origin_x) / cell_m)) // cells_per_tile
+            ky = np.int64(np.floor((y - origin_y) / cell_m)) // cells_per_tile
+        else:
+            bad = min(bad, i)
+        keys[i, 0] = kx
+        keys[i, 1] = ky
+        if every or keep[i]:
+            x_min = min(x_min, int(kx))
+            x_max = max(x_max, int(kx))
+            y_min = min(y_min, int(ky))
+            y_max = max(y_max, int(ky))
+    return keys, bad, x_min, x_max, y_min, y_max
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def extent_slots(
+    keys: np.ndarray, x_min: int, y_min: int, ny: int, keep: np.ndarray, dropped: int
+) -> np.ndarray:  # pragma: no cover - compiled
+    """``(keys[:, 0] - x_min) * ny + keys[:, 1] - y_min`` of the points ``keep`` marks (all
+    when empty), ``dropped`` for the others."""
+    n = keys.shape[0]
+    slots = np.empty(n, np.int64)
+    every = keep.shape[0] == 0
+    for i in nb.prange(n):
+        if every or keep[i]:
+            slots[i] = (keys[i, 0] - x_min) * ny + (keys[i, 1] - y_min)
+        else:
+            slots[i] = dropped
+    return slots
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
 def tile_cell_codes(
     xyz: np.ndarray,
     origin_x: float,
@@ -155,18 +213,50 @@ def tile_cell_codes(
     ``2**depth`` by ``2**depth`` squares of whole cells
     (:meth:`~semantic3d.spatial.grid.TileGrid.cell_codes`)."""
     codes = np.empty(xyz.shape[0], np.uint16)
-    side = np.int64(1) << depth
     for i in nb.prange(xyz.shape[0]):
         cx = np.int64(np.floor((xyz[i, 0] - origin_x) / cell_m))
         cy = np.int64(np.floor((xyz[i, 1] - origin_y) / cell_m))
-        sx = (cx - (cx // cells_per_tile) * cells_per_tile) * side // cells_per_tile
-        sy = (cy - (cy // cells_per_tile) * cells_per_tile) * side // cells_per_tile
-        code = np.int64(0)
-        for bit in range(depth):  # x's bits above y's at every level
-            code |= ((sx >> bit) & 1) << (2 * bit + 1)
-            code |= ((sy >> bit) & 1) << (2 * bit)
-        codes[i] = code
+        codes[i] = _square_code(cx, cy, cells_per_tile, depth)
     return codes
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _square_code(cx: Any, cy: Any, cells_per_tile: Any, depth: Any) -> Any:  # pragma: no cover
+    """Morton code of cell ``(cx, cy)``'s square in its tile (x's bits above y's at every
+    level)."""
+    side = np.int64(1) << depth
+    sx = (cx - (cx // cells_per_tile) * cells_per_tile) * side // cells_per_tile
+    sy = (cy - (cy // cells_per_tile) * cells_per_tile) * side // cells_per_tile
+    code = np.int64(0)
+    for bit in range(depth):
+        code |= ((sx >> bit) & 1) << (2 * bit + 1)
+        code |= ((sy >> bit) & 1) << (2 * bit)
+    return code
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def tile_places(
+    xyz: np.ndarray,
+    origin_x: float,
+    origin_y: float,
+    cell_m: float,
+    cells_per_tile: int,
+    depth: int,
+    relative_to: np.ndarray,
+    relative: np.ndarray,
+    tiles: np.ndarray,
+    codes: np.ndarray,
+) -> None:  # pragma: no cover - compiled
+    """One pass over the points: ``relative = float32(xyz - relative_to)``, ``tiles`` the
+    packed tile keys (``x << 32`` plus ``y``) and ``codes`` the squares' codes at
+    ``depth``, as :func:`tile_keys` and :func:`tile_cell_codes` compute them."""
+    for i in nb.prange(xyz.shape[0]):
+        for column in range(3):
+            relative[i, column] = np.float32(xyz[i, column] - relative_to[column])
+        cx = np.int64(np.floor((xyz[i, 0] - origin_x) / cell_m))
+        cy = np.int64(np.floor((xyz[i, 1] - origin_y) / cell_m))
+        tiles[i] = ((cx // cells_per_tile) << 32) + cy // cells_per_tile
+        codes[i] = _square_code(cx, cy, cells_per_tile, depth)
 
 
 @nb.njit(cache=True, nogil=True)

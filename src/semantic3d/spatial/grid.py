@@ -86,6 +86,30 @@ class TileGrid:
         keys: NDArray[np.int64] = tile_keys(_coordinates(xyz), *self._numbers())
         return keys
 
+    def tile_keys_extent(
+        self, xyz: NDArray[np.float64], *, keep: NDArray[np.bool_] | None = None
+    ) -> tuple[NDArray[np.int64], tuple[int, int, int, int] | None]:
+        """:meth:`tile_keys` with, in the same pass, ``(x_min, x_max, y_min, y_max)`` of the
+        keys of the points ``keep`` marks (all by default; None when it marks none).
+
+        Raises:
+            ShapeError: a point's x or y is not a finite number.
+        """
+        from semantic3d.spatial._kernels import tile_keys_extent
+
+        points = _coordinates(xyz)
+        marks = np.empty(0, np.bool_) if keep is None else np.ascontiguousarray(keep, np.bool_)
+        if marks.size and marks.shape != (points.shape[0],):
+            raise ShapeError(f"keep: expected ({points.shape[0]},), found {marks.shape}")
+        keys, bad, x_min, x_max, y_min, y_max = tile_keys_extent(points, *self._numbers(), marks)
+        if bad < points.shape[0]:
+            raise ShapeError(
+                f"xyz: expected finite coordinates, found {points[bad, :2].tolist()} at row {bad}"
+            )
+        if x_min > x_max:
+            return keys, None
+        return keys, (int(x_min), int(x_max), int(y_min), int(y_max))
+
     def cell_codes(self, xyz: NDArray[np.float64], *, depth: int) -> NDArray[np.uint16]:
         """``(n,)`` Morton code of each point's square in its tile, the tile cut into
         ``2**depth`` by ``2**depth`` squares (``0 <= depth <= MAX_CELL_DEPTH``).
@@ -102,6 +126,36 @@ class TileGrid:
             raise ShapeError(f"depth: expected 0..{MAX_CELL_DEPTH}, found {depth}")
         codes: NDArray[np.uint16] = tile_cell_codes(_coordinates(xyz), *self._numbers(), int(depth))
         return codes
+
+    def places(
+        self,
+        xyz: NDArray[np.float64],
+        *,
+        depth: int,
+        relative_to: NDArray[np.float64],
+        out: tuple[NDArray[np.float32], NDArray[np.int64], NDArray[np.uint16]],
+    ) -> None:
+        """Where each point lies, in one pass: writes into ``out`` its coordinates
+        relative to ``relative_to`` rounded to float32 (``(n, 3)``), its packed tile
+        (``(n,)``: :meth:`tile_keys`' x shifted 32 bits up plus y) and its square's code
+        at ``depth`` (``(n,)``: :meth:`cell_codes`)."""
+        from semantic3d.spatial._kernels import tile_places
+
+        if not 0 <= depth <= MAX_CELL_DEPTH:
+            raise ShapeError(f"depth: expected 0..{MAX_CELL_DEPTH}, found {depth}")
+        points = _coordinates(xyz)
+        relative, tiles, codes = out
+        n = points.shape[0]
+        shapes = (points.shape[1:], relative.shape, tiles.shape, codes.shape)
+        dtypes = (relative.dtype, tiles.dtype, codes.dtype)
+        if shapes != ((3,), (n, 3), (n,), (n,)) or dtypes != (np.float32, np.int64, np.uint16):
+            raise ShapeError(
+                f"places: expected (n, 3) points and out float32 (n, 3), int64 (n,), uint16 "
+                f"(n,) for n = {n}, found {points.shape}, "
+                + ", ".join(f"{a.dtype} {a.shape}" for a in out)
+            )
+        origin = np.ascontiguousarray(relative_to, dtype=np.float64).reshape(3)
+        tile_places(points, *self._numbers(), int(depth), origin, relative, tiles, codes)
 
     def _numbers(self) -> tuple[float, float, float, int]:
         """The grid as the kernels take it: origin x, origin y, cell size, cells per tile."""

@@ -25,11 +25,13 @@ from __future__ import annotations
 import json
 import logging
 import math
+import os
 import shutil
 import tempfile
+import threading
 import uuid
 from collections import defaultdict
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
@@ -40,6 +42,7 @@ from numpy.typing import NDArray
 
 from semantic3d.core.errors import DataFormatError, ShapeError
 from semantic3d.core.pointcloud import PointCloud
+from semantic3d.core.threads import map_in_threads, thread_budget
 from semantic3d.spatial.grid import Bounds, TileGrid, TileKey
 
 if TYPE_CHECKING:
@@ -72,6 +75,8 @@ REMAP_BYTES = 1 << 27
 """Records read through one mapping of a store's files before they are mapped anew (a
 process, a Dask worker among them, keeps at most about this much of a store resident)."""
 DEFAULT_BUFFER_POINTS = 1 << 22
+_MAX_TILE_SPAN = 1 << 31
+"""Tiles along x or y that one chunk may span (their numbers fit 62 bits)."""
 _SMALL_TILE_POINTS = 4096
 """Tiles this small are filtered whole: cheaper than gathering their sub-cells."""
 
@@ -476,6 +481,15 @@ class TileStore:
         return TilePoints.from_records(np.take(points, joined))
 
 
+def _write_at(fd: int, values: NDArray[Any], offset: int) -> None:
+    """Write the bytes of contiguous ``values`` at ``offset`` of ``fd`` (positioned writes
+    of several threads do not disturb one another)."""
+    view = values.data.cast("B")
+    while view.nbytes:
+        written = os.pwrite(fd, view, offset)
+        view, offset = view[written:], offset + written
+
+
 def _write_npy_header(stream: Any, dtype: np.dtype[Any], n: int) -> None:
     """The ``.npy`` header of a one-dimensional array of ``n`` records of ``dtype``."""
     header = {
@@ -583,18 +597,18 @@ class TileStoreWriter:
             raise ShapeError(f"keep: expected ({n},), found {np.shape(keep)}")
         if n == 0:
             return
-        if not np.all(np.isfinite(cloud.xyz[:, :2])):
-            raise ShapeError("xyz: expected finite coordinates, found NaN or infinity")
+        # one pass on every thread: keys, the kept keys' extent, the coordinates checked
+        keys, extent = self.grid.tile_keys_extent(cloud.xyz, keep=keep)
         if indices is None:
             indices = np.arange(self._next_index, self._next_index + n, dtype=np.int64)
-        keys = self.grid.tile_keys(cloud.xyz)
-        self._add_grouped(keys[:, 0], keys[:, 1], cloud, np.asarray(indices, np.int64), keep)
+        if extent is not None:
+            self._add_grouped(keys, extent, cloud, np.asarray(indices, np.int64), keep)
         self._next_index += n
 
     def _add_grouped(
         self,
-        ix: NDArray[np.int64],
-        iy: NDArray[np.int64],
+        keys: NDArray[np.int64],
+        extent: tuple[int, int, int, int],
         cloud: PointCloud,
         indices: NDArray[np.int64],
         keep: NDArray[np.bool_] | None,
@@ -604,25 +618,29 @@ class TileStoreWriter:
         # id and are left out.
         import numba
 
-        from semantic3d.spatial._kernels import group_by_slot
+        from semantic3d.spatial._kernels import extent_slots, group_by_slot
 
-        if keep is not None:
-            if not keep.any():
-                return
-            ix, iy = ix[keep], iy[keep]  # the extent of the kept points only
-        x0, y0 = int(ix.min()), int(iy.min())
-        nx, ny = int(ix.max()) - x0 + 1, int(iy.max()) - y0 + 1
-        dense = (ix - x0) * ny + (iy - y0)
+        x0, x1, y0, y1 = extent
+        nx, ny = x1 - x0 + 1, y1 - y0 + 1
+        if max(nx, ny) > _MAX_TILE_SPAN:
+            raise ShapeError(
+                f"xyz: expected points within {_MAX_TILE_SPAN} tiles of one another along x "
+                f"and y, found tiles {x0}..{x1} by {y0}..{y1}"
+            )
+        marks = np.empty(0, np.bool_) if keep is None else np.ascontiguousarray(keep, np.bool_)
+        n_slots = nx * ny
+        dense = extent_slots(keys, x0, y0, ny, marks, n_slots)
+        n_kept = cloud.n_points if keep is None else int(np.count_nonzero(keep))
         cells = None
-        if nx * ny > max(np.iinfo(np.uint16).max - 1, 4 * ix.shape[0]):
-            cells, dense = np.unique(dense, return_inverse=True)  # sparse tiles: renumber
-            dense = dense.reshape(-1)
-        n_kept = dense.shape[0]
-        n_slots = int(dense.max()) + 1
-        if keep is not None:
-            full = np.full(cloud.n_points, n_slots, dtype=np.int64)  # dropped: the last id
-            full[keep] = dense
-            dense = full
+        if n_slots > max(np.iinfo(np.uint16).max - 1, 4 * n_kept):  # sparse tiles: renumber
+            kept = dense if keep is None else dense[keep]
+            cells, numbers = np.unique(kept, return_inverse=True)
+            n_slots = cells.size
+            if keep is None:
+                dense = numbers.reshape(-1)
+            else:
+                dense = np.full(cloud.n_points, n_slots, dtype=np.int64)  # dropped: the last id
+                dense[keep] = numbers.reshape(-1)
         assert self._dtype is not None
         grouped = np.empty(n_kept, self._dtype)
         labels = cloud.labels
@@ -680,10 +698,17 @@ class TileStoreWriter:
         n_cells = self.subdivisions**2
         offsets = np.zeros((len(tiles), n_cells + 1), np.int64)
         starts = np.zeros(len(tiles) + 1, np.int64)
+        counts = [self._count(tile, dtype) for tile in tiles]
+        np.cumsum(counts, out=starts[1:])
         if self.directory is None and not self._on_disk:
             points = np.empty(self.n_points, dtype)
             order = np.empty(self.n_points, np.int32)
-            self._fill(tiles, points, order, offsets, starts)
+
+            def fill(row: int) -> None:
+                begin, end = int(starts[row]), int(starts[row + 1])
+                self._fill(tiles[row], points[begin:end], order[begin:end], offsets[row])
+
+            self._each_tile(fill, counts)
             shutil.rmtree(self._staging, ignore_errors=True)
             return TileStore._in_memory(
                 grid=self.grid,
@@ -695,7 +720,7 @@ class TileStoreWriter:
                 order=order,
                 metadata=self.metadata,
             )
-        self._write(tiles, dtype, offsets, starts)
+        self._write(tiles, dtype, offsets, starts, counts)
         np.save(self._staging / KEYS_FILE, np.array(tiles, dtype=np.int64).reshape(-1, 2))
         np.save(self._staging / OFFSETS_FILE, offsets)
         np.save(self._staging / STARTS_FILE, starts)
@@ -716,44 +741,64 @@ class TileStoreWriter:
         logger.info("tiled %d points into %d tiles", self.n_points, len(tiles))
         return TileStore(final)
 
+    def _count(self, tile: TileKey, dtype: np.dtype[Any]) -> int:
+        """Points of ``tile`` held in memory and spilled to its file."""
+        count = sum(part.shape[0] for part in self._buffers.get(tile, []))
+        if tile in self._on_disk:
+            count += self._part(tile).stat().st_size // dtype.itemsize
+        return count
+
+    @staticmethod
+    def _each_tile(function: Callable[[int], None], counts: list[int]) -> None:
+        """``function(row)`` for every tile, tiles at the same time on the thread budget's
+        threads, the largest first, each tile's kernels on a share of the threads in
+        proportion to its points (the densest tile of a scan holds half of them)."""
+        n_threads = thread_budget()
+        total = max(1, sum(counts))
+        rows = sorted(range(len(counts)), key=lambda row: (-counts[row], row))
+        for _ in map_in_threads(
+            function,
+            rows,
+            n_threads=n_threads,
+            ordered=False,
+            numba_threads_per_task=lambda row: max(1, round(n_threads * counts[row] / total)),
+            name="s3d-seal",
+        ):
+            pass
+
     def _fill(
         self,
-        tiles: list[TileKey],
-        points: NDArray[Any],
+        tile: TileKey,
+        records: NDArray[Any],
         order: NDArray[np.int32],
         offsets: NDArray[np.int64],
-        starts: NDArray[np.int64],
     ) -> None:
-        """Write every tile's records, contiguous and in tile order, and its sub-cell index."""
+        """Write ``tile``'s records (the spilled ones, then those in memory) into
+        ``records`` and its sub-cell index into ``order`` and ``offsets``."""
         import numba
 
         from semantic3d.spatial._kernels import sub_cell_order
 
-        begin = 0
-        for row, tile in enumerate(tiles):
-            parts: list[NDArray[Any]] = []
-            if tile in self._on_disk:
-                parts.append(np.fromfile(self._part(tile), points.dtype))
-            parts.extend(self._buffers.pop(tile, []))
-            end = begin
-            for part in parts:  # as bytes: a structured copy is ~8x slower
-                _as_bytes(points[end : end + part.shape[0]])[...] = _as_bytes(part)
-                end += part.shape[0]
-            records = points[begin:end]
-            t_x0, t_y0, _, _ = self.grid.tile_bounds(tile)
-            sub_cell_order(  # a stable counting sort by sub-cell
-                records["xyz"],
-                t_x0,
-                t_y0,
-                self.grid.tile_size_m / self.subdivisions,
-                self.subdivisions,
-                order[begin:end],
-                offsets[row],
-                numba.get_num_threads(),
-            )
-            starts[row + 1] = end
-            self._part(tile).unlink(missing_ok=True)
-            begin = end
+        parts: list[NDArray[Any]] = []
+        if tile in self._on_disk:
+            parts.append(np.fromfile(self._part(tile), records.dtype))
+        parts.extend(self._buffers.pop(tile, []))
+        end = 0
+        for part in parts:  # as bytes: a structured copy is ~8x slower
+            _as_bytes(records[end : end + part.shape[0]])[...] = _as_bytes(part)
+            end += part.shape[0]
+        t_x0, t_y0, _, _ = self.grid.tile_bounds(tile)
+        sub_cell_order(  # a stable counting sort by sub-cell
+            records["xyz"],
+            t_x0,
+            t_y0,
+            self.grid.tile_size_m / self.subdivisions,
+            self.subdivisions,
+            order,
+            offsets,
+            numba.get_num_threads(),
+        )
+        self._part(tile).unlink(missing_ok=True)
 
     def _write(
         self,
@@ -761,29 +806,35 @@ class TileStoreWriter:
         dtype: np.dtype[Any],
         offsets: NDArray[np.int64],
         starts: NDArray[np.int64],
+        counts: list[int],
     ) -> None:
-        """Write the point and order files tile by tile, with plain writes: memory holds
-        one tile (a file written through a memory map counts every page it wrote in the
-        process's resident memory, the whole store at the end)."""
+        """Write the point and order files, each tile at its place with positioned writes
+        (tiles at the same time) from memory that holds the tiles being written: a file
+        written through a memory map counts every page it wrote in the process's resident
+        memory, the whole store at the end."""
         with (
             (self._staging / POINTS_FILE).open("wb") as points_file,
             (self._staging / ORDER_FILE).open("wb") as order_file,
         ):
             _write_npy_header(points_file, dtype, self.n_points)
             _write_npy_header(order_file, np.dtype(np.int32), self.n_points)
-            begin = 0
-            for row, tile in enumerate(tiles):
-                count = sum(part.shape[0] for part in self._buffers.get(tile, []))
-                if tile in self._on_disk:
-                    count += self._part(tile).stat().st_size // dtype.itemsize
-                records = np.empty(count, dtype)
-                order = np.empty(count, np.int32)
-                ends = np.zeros(2, np.int64)  # _fill's start and end of this one tile
-                self._fill([tile], records, order, offsets[row : row + 1], ends)
-                points_file.write(_as_bytes(records).data)
-                order_file.write(order.data)
-                begin += count
-                starts[row + 1] = begin
+            points_file.flush()
+            order_file.flush()
+            points_at, order_at = points_file.tell(), order_file.tell()
+            writing = threading.Lock()
+
+            def write(row: int) -> None:
+                records = np.empty(counts[row], dtype)
+                order = np.empty(counts[row], np.int32)
+                self._fill(tiles[row], records, order, offsets[row])
+                begin = int(starts[row])
+                with writing:  # one writer at a time: a file's writes take turns anyway
+                    _write_at(
+                        points_file.fileno(), _as_bytes(records), points_at + begin * dtype.itemsize
+                    )
+                    _write_at(order_file.fileno(), order, order_at + begin * order.itemsize)
+
+            self._each_tile(write, counts)
 
     def abort(self) -> None:
         """Remove everything written; ``directory`` is left as it was."""

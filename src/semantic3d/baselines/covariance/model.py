@@ -311,24 +311,35 @@ class _PositionFile:
         files."""
         self.folder.mkdir(parents=True, exist_ok=True)
         origin: NDArray[np.float64] | None = None
+        grid: TileGrid | None = None
+        buffers = (np.empty((0, 3), np.float32), np.empty(0, np.int64), np.empty(0, np.uint16))
         with (
             (self.folder / "xyz.f32").open("wb") as xyz_file,
             (self.folder / "tiles.i64").open("wb") as tile_file,
             (self.folder / "cells.u16").open("wb") as cell_file,
         ):
             for chunk in chunks:
-                if chunk.n_points:
-                    if origin is None:
+                n = chunk.n_points
+                if n:
+                    if origin is None or grid is None:
                         origin = grid_origin(
                             chunk.xyz[0],
                             coarsest_voxel_size_m=self.config.features.coarsest_voxel_size_m,
                         )
-                    # one pass: the float64 difference rounded to float32 as it is stored
-                    relative = np.empty(chunk.xyz.shape, np.float32)
-                    np.subtract(chunk.xyz, origin, out=relative, casting="same_kind")
-                    xyz_file.write(relative.data)
-                    tile_file.write(point_tiles(chunk.xyz, origin=origin, config=self.config).data)
-                    cell_file.write(point_cells(chunk.xyz, origin=origin, config=self.config).data)
+                        grid = _tile_grid(origin, self.config)
+                    if n > buffers[1].size:  # the chunks' size: the buffers are reused
+                        buffers = (
+                            np.empty((n, 3), np.float32),
+                            np.empty(n, np.int64),
+                            np.empty(n, np.uint16),
+                        )
+                    # one pass on every thread (positions, tiles and squares of point_tiles
+                    # and point_cells), into buffers whose pages are touched once
+                    out = (buffers[0][:n], buffers[1][:n], buffers[2][:n])
+                    grid.places(chunk.xyz, depth=GRAPH_CELL_DEPTH, relative_to=origin, out=out)
+                    xyz_file.write(out[0].data)
+                    tile_file.write(out[1].data)
+                    cell_file.write(out[2].data)
                 yield chunk
         self._complete = True
 
