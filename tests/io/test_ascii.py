@@ -14,6 +14,7 @@ from semantic3d.io import (
     read_ascii_points,
     write_ascii_points,
 )
+from semantic3d.io.labels import format_labels_bytes
 from tests.factories import random_cloud
 
 
@@ -161,6 +162,34 @@ def test_writer_rejects_non_finite_coordinates(tmp_path: Path) -> None:
     cloud = PointCloud.from_arrays([[0, 0, 0], [np.nan, 0, 0]])
     with pytest.raises(DataFormatError, match=r"point #1: expected finite coordinates"):
         write_ascii_points(tmp_path / "bad.txt", [cloud])
+
+
+def test_writer_names_a_bad_point_by_its_place_in_the_file_and_writes_nothing(
+    tmp_path: Path,
+) -> None:
+    cloud = random_cloud(300_000, labels=True)
+    cloud.xyz[200_001, 2] = np.inf  # in the second formatting batch of the second chunk
+    cloud.xyz[250_000, 0] = 1e17  # beyond what 3 decimals hold in 64 bits
+    points, labels = tmp_path / "a.txt", tmp_path / "a.labels"
+    with (
+        pytest.raises(DataFormatError, match=r"point #200001: expected finite coordinates below"),
+        open_ascii_writer(points, labels_path=labels) as writer,
+    ):
+        writer.write(cloud[:50_000])
+        writer.write(cloud[50_000:])
+    assert list(tmp_path.iterdir()) == []
+    cloud.xyz[200_001, 2] = 0.0
+    with pytest.raises(DataFormatError, match=r"point #250000: expected finite coordinates below"):
+        write_ascii_points(points, [cloud], labels_path=labels)
+
+
+def test_writer_counts_the_labels_it_writes(tmp_path: Path) -> None:
+    cloud = random_cloud(200_000, labels=True)
+    cloud.labels[:7] = [255, 10, 99, 100, 0, 9, 200]
+    with open_ascii_writer(tmp_path / "a.txt", labels_path=tmp_path / "a.labels") as writer:
+        writer.write(cloud)
+    np.testing.assert_array_equal(writer.label_counts, np.bincount(cloud.labels, minlength=256))
+    assert (tmp_path / "a.labels").read_bytes() == format_labels_bytes(cloud.labels).tobytes()
 
 
 def test_writer_needs_labels_when_given_a_labels_path(tmp_path: Path) -> None:

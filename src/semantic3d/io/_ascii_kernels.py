@@ -633,20 +633,32 @@ def format_points(
     xyz: np.ndarray,
     intensity: np.ndarray,
     rgb: np.ndarray,
+    labels: np.ndarray,
     decimals: int,
+    limit: float,
     n_segments: int,
     n_threads: int,
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
     """Format rows as text in ``n_segments`` buffers on ``n_threads`` threads (each takes
-    the next segment as it comes free); return ``(buffers, used)``.
+    the next segment as it comes free), their labels (when ``labels`` is not empty) as
+    ``.labels`` lines in as many more; return ``(buffers, used, label_buffers,
+    label_used, label_counts, bad)``.
 
-    The caller writes ``buffers[s, :used[s]]`` in order; the bytes do not depend on the
-    number of segments or threads, so output is deterministic.
+    The caller writes ``buffers[s, :used[s]]`` in order (and the labels' likewise); the
+    bytes do not depend on the number of segments or threads, so output is
+    deterministic. ``label_counts`` counts the rows of each label value; ``bad`` is the
+    first row with a coordinate not finite or not below ``limit`` in magnitude (left
+    unformatted), or the number of rows when there is none.
     """
     n = xyz.shape[0]
     per_segment = (n + n_segments - 1) // n_segments
     buffers = np.empty((n_segments, max(per_segment, 1) * MAX_LINE_BYTES), np.uint8)
     used = np.zeros(n_segments, np.int64)
+    with_labels = labels.shape[0] > 0
+    label_buffers = np.empty((n_segments, max(per_segment, 1) * 4 if with_labels else 0), np.uint8)
+    label_used = np.zeros(n_segments, np.int64)
+    counts = np.zeros((n_segments, 256), np.int64)
+    first_bad = np.full(n_segments, n, np.int64)
     scale = 10.0**decimals
     taken = np.zeros(1, np.int64)
     for _ in nb.prange(max(1, min(n_threads, n_segments))):
@@ -657,6 +669,11 @@ def format_points(
             out = buffers[s]
             pos = 0
             for i in range(s * per_segment, min(n, (s + 1) * per_segment)):
+                if not (
+                    abs(xyz[i, 0]) < limit and abs(xyz[i, 1]) < limit and abs(xyz[i, 2]) < limit
+                ):
+                    first_bad[s] = min(first_bad[s], i)  # NaN fails every comparison
+                    continue
                 for column in range(3):
                     pos = _write_fixed(out, pos, xyz[i, column], decimals, scale)
                     out[pos] = 32
@@ -668,7 +685,16 @@ def format_points(
                 out[pos] = 10
                 pos += 1
             used[s] = pos
-    return buffers, used
+            if with_labels:
+                text = label_buffers[s]
+                pos = 0
+                for i in range(s * per_segment, min(n, (s + 1) * per_segment)):
+                    counts[s, labels[i]] += 1
+                    pos = _write_int(text, pos, np.int64(labels[i]))
+                    text[pos] = 10
+                    pos += 1
+                label_used[s] = pos
+    return buffers, used, label_buffers, label_used, counts.sum(axis=0), first_bad.min()
 
 
 @nb.njit(cache=True, nogil=True)

@@ -27,7 +27,7 @@ from semantic3d.core.errors import DataFormatError
 from semantic3d.core.pointcloud import PointCloud
 from semantic3d.io._point_text import COLUMNS, SMALL_FILE_BYTES, iter_small_points
 from semantic3d.io.chunks import DEFAULT_CHUNK_SIZE, validate_chunk_size
-from semantic3d.io.labels import attach_labels, format_labels_bytes
+from semantic3d.io.labels import attach_labels
 from semantic3d.io.staging import StagedPath, StagedWriter, write_chunks
 
 __all__ = [
@@ -43,6 +43,7 @@ DEFAULT_WINDOW_BYTES = 8 << 20
 """Bytes of text parsed per call of the compiled kernel (split over all cores)."""
 MAX_DECIMALS = 9
 _FORMAT_BATCH = 1 << 17
+_NO_LABELS = np.empty(0, np.uint8)
 
 
 def iter_ascii_points(
@@ -110,6 +111,8 @@ class AsciiPointWriter(StagedWriter):
         self.labels_path = None if labels_path is None else Path(labels_path)
         self.decimals = decimals
         self.n_points = 0
+        self.label_counts = np.zeros(256, np.int64)
+        """Points written with each label value (with a labels path)."""
         self._limit = 9.0e18 / 10.0**decimals
         self._staged = [StagedPath(self.path)]
         if self.labels_path is not None:
@@ -131,8 +134,9 @@ class AsciiPointWriter(StagedWriter):
                 path=str(self.path),
             )
         for start in range(0, cloud.n_points, _FORMAT_BATCH):
-            self._write_batch(cloud[start : start + _FORMAT_BATCH])
-        self.n_points += cloud.n_points
+            batch = cloud[start : start + _FORMAT_BATCH]
+            self._write_batch(batch)
+            self.n_points += batch.n_points
 
     def _write_batch(self, batch: PointCloud) -> None:
         import numba
@@ -140,28 +144,32 @@ class AsciiPointWriter(StagedWriter):
         from semantic3d.io import _ascii_kernels as kernels
 
         xyz = np.ascontiguousarray(batch.xyz)
-        if not np.isfinite(xyz).all() or np.abs(xyz).max(initial=0.0) >= self._limit:
-            bad = int(np.flatnonzero(~(np.abs(xyz) < self._limit).all(axis=1))[0])
+        labels = batch.labels if self._labels_stream is not None else None
+        n_threads = numba.get_num_threads()
+        # several segments a thread, taken as threads come free: the end waits for less
+        n_segments = max(1, min(4 * n_threads, batch.n_points // 4096))
+        buffers, used, label_text, label_used, counts, bad = kernels.format_points(
+            xyz,
+            np.ascontiguousarray(batch.intensity),
+            np.ascontiguousarray(batch.rgb),
+            _NO_LABELS if labels is None else np.ascontiguousarray(labels, np.uint8),
+            self.decimals,
+            self._limit,
+            n_segments,
+            n_threads,
+        )
+        if bad < batch.n_points:
             raise DataFormatError(
                 f"point #{self.n_points + bad}: expected finite coordinates below "
                 f"{self._limit:.3g} m, found {xyz[bad].tolist()}",
                 path=str(self.path),
             )
-        n_threads = numba.get_num_threads()
-        # several segments a thread, taken as threads come free: the end waits for less
-        n_segments = max(1, min(4 * n_threads, batch.n_points // 4096))
-        buffers, used = kernels.format_points(
-            xyz,
-            np.ascontiguousarray(batch.intensity),
-            np.ascontiguousarray(batch.rgb),
-            self.decimals,
-            n_segments,
-            n_threads,
-        )
         for segment in range(n_segments):
             self._stream.write(buffers[segment, : used[segment]].data)
-        if self._labels_stream is not None and batch.labels is not None:
-            self._labels_stream.write(format_labels_bytes(batch.labels))
+        if self._labels_stream is not None:
+            for segment in range(n_segments):
+                self._labels_stream.write(label_text[segment, : label_used[segment]].data)
+            self.label_counts += counts
 
     def close(self) -> None:
         """Flush and close the files and move them to their final names."""

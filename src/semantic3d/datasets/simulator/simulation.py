@@ -15,8 +15,6 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-import numpy as np
-
 from semantic3d import __version__
 from semantic3d.core import N_CLASSES, class_by_value
 from semantic3d.core.threads import iter_ahead, thread_budget
@@ -260,7 +258,6 @@ def _write_station(
 ) -> StationScan:
     stem = f"{compiled.scene.name}_{station.name}"
     points_path, labels_path = out / f"{stem}.txt", out / f"{stem}.labels"
-    counts = np.zeros(N_CLASSES + 1, np.int64)
     # Blocks as they come: the file's bytes do not depend on how points are grouped. The
     # next block is cast and shaded on a thread of its own while this one is written.
     chunks = iter_ahead(
@@ -276,10 +273,9 @@ def _write_station(
     with open_ascii_writer(points_path, labels_path=labels_path) as writer:
         for chunk in chunks:
             writer.write(chunk)
-            if chunk.labels is not None:  # always: simulated chunks carry labels
-                counts += np.bincount(chunk.labels, minlength=N_CLASSES + 1)
             if progress is not None:
                 progress(done + writer.n_points, expected)
+    counts = writer.label_counts[: N_CLASSES + 1]  # counted as the labels were formatted
     return StationScan(
         station, points_path, labels_path, writer.n_points, tuple(int(c) for c in counts), plan
     )
