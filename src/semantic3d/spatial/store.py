@@ -17,7 +17,9 @@ hundred bytes and reopens in another process, so a :class:`~semantic3d.spatial.j
 can travel to a worker that sees the same folder. Memory while building is bounded by
 ``buffer_points``; while reading, by the tiles read. Binning, the sub-cell index and box
 reads are compiled counting sorts and scans (:mod:`semantic3d.spatial._kernels`), with
-the results the numpy expressions they replace give (``tests/spatial``).
+the results the numpy expressions they replace give (``tests/spatial``); tiles are
+sealed at the same time on the thread budget, each written at its place (the same
+files for any number of threads). Sealing holds the tiles being sealed in memory.
 """
 
 from __future__ import annotations
