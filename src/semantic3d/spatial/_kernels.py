@@ -131,17 +131,10 @@ def sub_cell_order(
         order[destination[i]] = i
 
 
-@nb.njit(cache=True, nogil=True, parallel=True)
-def tile_keys(
-    xyz: np.ndarray, origin_x: float, origin_y: float, cell_m: float, cells_per_tile: int
-) -> np.ndarray:  # pragma: no cover - compiled
-    """``(n, 2)`` ``floor((xy - origin) / cell_m) // cells_per_tile`` of every point, as
-    numpy computes it (:meth:`~semantic3d.spatial.grid.TileGrid.tile_keys`)."""
-    keys = np.empty((xyz.shape[0], 2), np.int64)
-    for i in nb.prange(xyz.shape[0]):
-        keys[i, 0] = np.int64(np.floor((xyz[i, 0] - origin_x) / cell_m)) // cells_per_tile
-        keys[i, 1] = np.int64(np.floor((xyz[i, 1] - origin_y) / cell_m)) // cells_per_tile
-    return keys
+@nb.njit(cache=True, nogil=True, inline="always")
+def _cell(value: Any, origin: Any, cell_m: Any) -> Any:  # pragma: no cover - compiled
+    """``floor((value - origin) / cell_m)`` as an integer, as numpy computes it."""
+    return np.int64(np.floor((value - origin) / cell_m))
 
 
 @nb.njit(cache=True, nogil=True, parallel=True)
@@ -153,7 +146,8 @@ def tile_keys_extent(
     cells_per_tile: int,
     keep: np.ndarray,
 ) -> tuple[np.ndarray, int, int, int, int, int]:  # pragma: no cover - compiled
-    """:func:`tile_keys` of every point, with the first row whose x or y is not finite
+    """``(n, 2)`` tile keys ``floor((xy - origin) / cell_m) // cells_per_tile`` of every
+    point (:meth:`~semantic3d.spatial.grid.TileGrid.tile_keys`), with the first row whose x or y is not finite
     (``n`` when none; its keys are 0) and the least and greatest x and y keys of the
     points ``keep`` marks (all when empty; the least above the greatest when none)."""
     n = xyz.shape[0]
@@ -169,8 +163,8 @@ def tile_keys_extent(
         kx = np.int64(0)
         ky = np.int64(0)
         if np.isfinite(x) and np.isfinite(y):
-            kx = np.int64(np.floor((x - origin_x) / cell_m)) // cells_per_tile
-            ky = np.int64(np.floor((y - origin_y) / cell_m)) // cells_per_tile
+            kx = _cell(x, origin_x, cell_m) // cells_per_tile
+            ky = _cell(y, origin_y, cell_m) // cells_per_tile
         else:
             bad = min(bad, i)
         keys[i, 0] = kx
@@ -214,8 +208,8 @@ def tile_cell_codes(
     (:meth:`~semantic3d.spatial.grid.TileGrid.cell_codes`)."""
     codes = np.empty(xyz.shape[0], np.uint16)
     for i in nb.prange(xyz.shape[0]):
-        cx = np.int64(np.floor((xyz[i, 0] - origin_x) / cell_m))
-        cy = np.int64(np.floor((xyz[i, 1] - origin_y) / cell_m))
+        cx = _cell(xyz[i, 0], origin_x, cell_m)
+        cy = _cell(xyz[i, 1], origin_y, cell_m)
         codes[i] = _square_code(cx, cy, cells_per_tile, depth)
     return codes
 
@@ -249,12 +243,12 @@ def tile_places(
 ) -> None:  # pragma: no cover - compiled
     """One pass over the points: ``relative = float32(xyz - relative_to)``, ``tiles`` the
     packed tile keys (``x << 32`` plus ``y``) and ``codes`` the squares' codes at
-    ``depth``, as :func:`tile_keys` and :func:`tile_cell_codes` compute them."""
+    ``depth``, as :func:`tile_keys_extent` and :func:`tile_cell_codes` compute them."""
     for i in nb.prange(xyz.shape[0]):
         for column in range(3):
             relative[i, column] = np.float32(xyz[i, column] - relative_to[column])
-        cx = np.int64(np.floor((xyz[i, 0] - origin_x) / cell_m))
-        cy = np.int64(np.floor((xyz[i, 1] - origin_y) / cell_m))
+        cx = _cell(xyz[i, 0], origin_x, cell_m)
+        cy = _cell(xyz[i, 1], origin_y, cell_m)
         tiles[i] = ((cx // cells_per_tile) << 32) + cy // cells_per_tile
         codes[i] = _square_code(cx, cy, cells_per_tile, depth)
 

@@ -80,10 +80,12 @@ class TileGrid:
         return self.cell_size_m * self.cells_per_tile
 
     def tile_keys(self, xyz: NDArray[np.float64]) -> NDArray[np.int64]:
-        """``(n, 2)`` int64 tile index of each point of ``(n, >=2)`` coordinates."""
-        from semantic3d.spatial._kernels import tile_keys
+        """``(n, 2)`` int64 tile index of each point of ``(n, >=2)`` coordinates (``(0, 0)``
+        for a point whose x or y is not a number: :meth:`tile_keys_extent` names it)."""
+        from semantic3d.spatial._kernels import tile_keys_extent
 
-        keys: NDArray[np.int64] = tile_keys(_coordinates(xyz), *self._numbers())
+        no_marks = np.empty(0, np.bool_)
+        keys: NDArray[np.int64] = tile_keys_extent(_coordinates(xyz), *self._numbers(), no_marks)[0]
         return keys
 
     def tile_keys_extent(
