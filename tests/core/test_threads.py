@@ -139,6 +139,44 @@ def test_the_last_tasks_take_the_threads_the_others_gave_back() -> None:
     assert take_free_threads() == thread_budget()  # outside a map: the budget
 
 
+@pytest.mark.parametrize("ordered", [True, False])
+def test_a_nested_maps_tail_lends_its_idle_threads_to_the_enclosing_map(ordered: bool) -> None:
+    """A task of 3 threads maps a long item and two short ones: once the short ones have
+    ended, it keeps one thread and the next task (of 2) starts before the long item ends;
+    afterwards the task takes its threads back as far as they are free."""
+    long_started, b_started = threading.Event(), threading.Event()
+    seen: dict[str, object] = {}
+
+    def inner(item: int) -> int:
+        if item == 0:
+            long_started.set()
+            seen["b started during the long item"] = b_started.wait(10)
+        return item
+
+    def outer(name: str) -> str:
+        if name == "a":
+            results = list(map_in_threads(inner, range(3), ordered=ordered))
+            seen["a"] = (results if ordered else sorted(results), thread_budget())
+        else:
+            b_started.set()
+            seen["b budget"] = thread_budget()
+        return name
+
+    shares = {"a": 3, "b": 2}
+    with thread_limit(4):
+        done = list(map_in_threads(outer, "ab", numba_threads_per_task=shares.__getitem__))
+    assert done == ["a", "b"]
+    assert seen["b started during the long item"] is True
+    assert seen["b budget"] == 2
+    assert seen["a"] == ([0, 1, 2], 3)  # its threads back once the map ended
+
+
+def test_a_nested_map_outside_a_task_keeps_its_threads() -> None:
+    with thread_limit(3):
+        assert list(map_in_threads(lambda item: thread_budget(), range(4))) == [1, 1, 1, 1]
+        assert thread_budget() == 3
+
+
 def test_read_ahead_gives_the_items_in_order_and_stops_with_the_consumer() -> None:
     produced: list[int] = []
 

@@ -231,6 +231,8 @@ def map_in_threads(
         return
     limit = max(n_threads, 2 * n_threads if max_pending is None else int(max_pending))
     tokens = _Tokens(n_threads)
+    # inside an enclosing map's task: the tail's idle threads are lent to that map
+    lender = _TailLender() if numba_threads_per_task == 1 else None
 
     def run(item: T, ticket: int) -> R:
         count = _task_threads(numba_threads_per_task, item, n_threads)
@@ -252,7 +254,13 @@ def map_in_threads(
                 pending.append(pool.submit(run, item, tokens.ticket()))
             if not pending:
                 return
+            busy = [future for future in pending if not future.done()] if exhausted else []
+            if lender is not None and exhausted:
+                lender.keep(len(busy))
             if ordered:
+                if busy and lender is not None and lender.lending and not pending[0].done():
+                    wait(busy, return_when=FIRST_COMPLETED)  # lend as each task ends
+                    continue
                 yield pending.popleft().result()
                 continue
             done, _ = wait(pending, return_when=FIRST_COMPLETED)
@@ -264,6 +272,8 @@ def map_in_threads(
             future.cancel()
         tokens.close()
         pool.shutdown(wait=True)
+        if lender is not None:
+            lender.take_back()
 
 
 _LAYER_MODULES = ("numba.np.ufunc.tbbpool", "numba.np.ufunc.omppool")
@@ -403,6 +413,44 @@ def take_free_threads() -> int:
         _set_numba_threads_here(held[1])
         _task.budget = held[1]
     return int(held[1])
+
+
+class _TailLender:
+    """Lends an enclosing map the threads a nested map's tail leaves idle.
+
+    A map run inside another map's task (a tile's graph cuts, one thread each) holds the
+    task's threads until its last item ends; once every item has been handed out, the
+    task keeps as many as items still run or wait (at least one) and gives the rest back,
+    so another task of the enclosing map can start on them. What it gave is taken back
+    afterwards as far as it is free (never more threads than the enclosing map's at
+    once). Outside a map's task it does nothing. Results do not depend on it.
+    """
+
+    def __init__(self) -> None:
+        self.held = getattr(_task, "held", None)  # the calling task's [tokens, count]
+        self.count = 0 if self.held is None else int(self.held[1])
+
+    @property
+    def lending(self) -> bool:
+        return self.held is not None and self.count > 1
+
+    def keep(self, busy: int) -> None:
+        """Keep ``busy`` of the task's threads (at least one), give back the others."""
+        if self.held is None:
+            return
+        keep = max(1, busy)
+        if self.held[1] > keep:
+            self.held[0].give_back(self.held[1] - keep)
+            self.held[1] = keep
+            _set_numba_threads_here(keep)
+            _task.budget = keep
+
+    def take_back(self) -> None:
+        if self.held is None or self.held[1] >= self.count:
+            return
+        self.held[1] += self.held[0].take_up_to(self.count - self.held[1])
+        _set_numba_threads_here(self.held[1])
+        _task.budget = self.held[1]
 
 
 def _task_threads(per_task: Callable[[T], int] | int, item: T, ceiling: int) -> int:
