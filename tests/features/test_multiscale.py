@@ -98,12 +98,12 @@ def test_coarse_levels_with_fewer_points_than_k_use_all_of_them() -> None:
 
 
 @pytest.mark.parametrize(
-    ("per_point", "whole_level_points"),
-    [(False, 0), (False, 5000), (True, 0)],
-    ids=["voxel-halos", "voxel-coarse-levels-whole", "per-point-halos"],
+    ("per_point", "whole_level_points", "cache_bytes"),
+    [(False, 0, 96 << 20), (False, 5000, 96 << 20), (True, 0, 96 << 20), (False, 5000, 1)],
+    ids=["voxel-halos", "voxel-coarse-levels-whole", "per-point-halos", "every-level-reread"],
 )
 def test_tiled_features_equal_whole_scan_features_bit_for_bit(
-    scene: PointCloud, per_point: bool, whole_level_points: int, tmp_path
+    scene: PointCloud, per_point: bool, whole_level_points: int, cache_bytes: int, tmp_path
 ) -> None:
     config = FeatureConfig(
         **{
@@ -122,6 +122,7 @@ def test_tiled_features_equal_whole_scan_features_bit_for_bit(
         tile_size_m=3.2,
         workdir=tmp_path,
         whole_level_points=whole_level_points,
+        cache_bytes=cache_bytes,
     ) as scan:
         assert len(scan.tiles) > 30  # small tiles: halos cross many tiles at coarse levels
         for tile in scan.iter_features():

@@ -66,7 +66,7 @@ from semantic3d.features.multiscale import (
     fill_level_columns,
 )
 from semantic3d.features.neighbourhoods import LevelIndex
-from semantic3d.features.pyramid import VoxelPyramid, build_pyramid, grid_origin
+from semantic3d.features.pyramid import build_pyramid, grid_origin
 from semantic3d.spatial.grid import TileGrid, TileKey
 from semantic3d.spatial.store import TilePoints, TileStore, build_tile_store
 
@@ -107,30 +107,9 @@ class _TileLevel:
     def n_voxels(self) -> int:
         return int(self.keys.shape[0])
 
-
-@dataclass(frozen=True, slots=True)
-class _TilePyramid:
-    """A tile's pyramid as kept on disk and in the cache."""
-
-    point_voxel: NDArray[np.int64]
-    levels: tuple[_TileLevel, ...]
-
-    @classmethod
-    def of(cls, pyramid: VoxelPyramid) -> _TilePyramid:
-        return cls(
-            pyramid.point_voxel,
-            tuple(
-                _TileLevel(level.xyz, level.keys, level.attributes, level.parent)
-                for level in pyramid.levels
-            ),
-        )
-
     @property
     def nbytes(self) -> int:
-        return self.point_voxel.nbytes + sum(
-            level.xyz.nbytes + level.keys.nbytes + level.attributes.nbytes + level.parent.nbytes
-            for level in self.levels
-        )
+        return self.xyz.nbytes + self.keys.nbytes + self.attributes.nbytes + self.parent.nbytes
 
 
 @dataclass(frozen=True, slots=True)
@@ -207,7 +186,7 @@ class TiledScan:
         self._whole: dict[int, _WholeLevel | None] = {}
         self.whole_level_points = whole_level_points
         self.cache_bytes = cache_bytes
-        self._cache: OrderedDict[Tile, _TilePyramid] = OrderedDict()
+        self._cache: OrderedDict[tuple[Tile, int], _TileLevel | NDArray[np.int64]] = OrderedDict()
         self._cache_bytes = 0
         self._cache_scale = 1  # tiles computed at once: each keeps its neighbours cached
         self._lock = threading.Lock()
@@ -284,8 +263,11 @@ class TiledScan:
         return attribute_columns(points.cloud, self.config)
 
     # -- pass 2: pyramids ------------------------------------------------------------------
-    def _pyramid_path(self, tile: Tile) -> Path:
-        return self.workdir / f"{tile[0]}_{tile[1]}.pyramid.pickle"
+    def _pyramid_path(self, tile: Tile, part: int) -> Path:
+        """A tile's pyramid part in the scratch folder: level ``part``, or (``-1``) the
+        level-0 voxel of each of its points."""
+        name = "points" if part < 0 else f"level{part}"
+        return self.workdir / f"{tile[0]}_{tile[1]}.{name}.pickle"
 
     def _build_pyramids(self) -> None:
         """Every tile's pyramid, written to the scratch folder: tiles at the same time on
@@ -318,31 +300,53 @@ class TiledScan:
             origin=self.origin,
             attributes=self._attributes(points),
         )
-        with self._pyramid_path(tile).open("wb") as stream:
-            pickle.dump(_TilePyramid.of(pyramid), stream, protocol=pickle.HIGHEST_PROTOCOL)
+        # level by level: a level described whole, or a halo, reads its level alone
+        parts: list[tuple[int, object]] = [(-1, pyramid.point_voxel)]
+        for number, level in enumerate(pyramid.levels):
+            parts.append(
+                (number, _TileLevel(level.xyz, level.keys, level.attributes, level.parent))
+            )
+        for part, value in parts:
+            with self._pyramid_path(tile, part).open("wb") as stream:
+                pickle.dump(value, stream, protocol=pickle.HIGHEST_PROTOCOL)
         return [level.n_voxels for level in pyramid.levels]
 
-    def _pyramid(self, tile: Tile) -> _TilePyramid:
-        """A tile's pyramid, through a byte-bounded LRU cache (halos reread them)."""
+    def _level(self, tile: Tile, number: int) -> _TileLevel:
+        """Level ``number`` of a tile's pyramid (through the cache)."""
+        level = self._pyramid_part(tile, number)
+        assert isinstance(level, _TileLevel)
+        return level
+
+    def _point_voxels(self, tile: Tile) -> NDArray[np.int64]:
+        """The level-0 voxel of each of a tile's points (through the cache)."""
+        point_voxel = self._pyramid_part(tile, -1)
+        assert isinstance(point_voxel, np.ndarray)
+        return point_voxel
+
+    def _pyramid_part(self, tile: Tile, part: int) -> _TileLevel | NDArray[np.int64]:
+        """A tile's pyramid part through a byte-bounded LRU cache of parts (halos and the
+        levels described whole reread them; a part is one level, so a level gathered over
+        every tile does not push the tiles' other levels through the cache)."""
+        key = (tile, part)
         with self._lock:
-            cached = self._cache.get(tile)
+            cached = self._cache.get(key)
             if cached is not None:
-                self._cache.move_to_end(tile)
+                self._cache.move_to_end(key)
                 return cached
         # A scratch file this object wrote itself: pickle loads it ~5x faster than npz.
-        with self._pyramid_path(tile).open("rb") as stream:
-            pyramid: _TilePyramid = pickle.load(stream)
+        with self._pyramid_path(tile, part).open("rb") as stream:
+            value: _TileLevel | NDArray[np.int64] = pickle.load(stream)
         with self._lock:  # another thread may have loaded it meanwhile: keep one copy
-            cached = self._cache.get(tile)
+            cached = self._cache.get(key)
             if cached is not None:
                 return cached
-            self._cache[tile] = pyramid
-            self._cache_bytes += pyramid.nbytes
+            self._cache[key] = value
+            self._cache_bytes += value.nbytes
             limit = self.cache_bytes * self._cache_scale
             while self._cache_bytes > limit and len(self._cache) > 1:
                 _, evicted = self._cache.popitem(last=False)
                 self._cache_bytes -= evicted.nbytes
-        return pyramid
+        return value
 
     # -- pass 3: features ------------------------------------------------------------------
     def iter_features(self, *, select: ArrayLike | None = None) -> Iterator[TileFeatures]:
@@ -500,7 +504,6 @@ class TiledScan:
         assert self.origin is not None
         config = self.config
         width = len(config.level_feature_names)
-        pyramid = self._pyramid(tile)
         if config.per_point:
             queries = xyz - self.origin
             values = np.empty((queries.shape[0], config.n_features), np.float32)
@@ -511,7 +514,8 @@ class TiledScan:
             return FeatureTable(
                 config.feature_names, values, np.arange(queries.shape[0], dtype=np.int64)
             )
-        voxels, point_row = distinct_voxels(pyramid.point_voxel[local])
+        levels = [self._level(tile, number) for number in range(config.n_levels)]  # held
+        voxels, point_row = distinct_voxels(self._point_voxels(tile)[local])
         values = np.empty((voxels.size, config.n_features), np.float32)
         # level 0 (one row per voxel, in row order) also gives every row its k-NN
         neighbour_keys = np.empty((voxels.size, config.k_neighbours), np.int64)
@@ -519,14 +523,14 @@ class TiledScan:
         for number in range(config.n_levels):
             take_free_threads()  # a map's last tiles go on with the threads others left
             if number:
-                ancestor = pyramid.levels[number - 1].parent[ancestor]
+                ancestor = levels[number - 1].parent[ancestor]
 
             def compute(
                 needed: NDArray[np.int64], out: NDArray[np.float32], number: int = number
             ) -> None:
                 whole = self._whole_level(number)
                 if whole is None:
-                    level = pyramid.levels[number]
+                    level = levels[number]
                     self._exact_level(
                         tile,
                         number,
@@ -537,7 +541,7 @@ class TiledScan:
                         out=out,
                     )
                 else:
-                    at = np.searchsorted(whole.keys, pyramid.levels[number].keys[needed])
+                    at = np.searchsorted(whole.keys, levels[number].keys[needed])
                     put_rows(whole.rows, at, out, 0)  # out[:] = whole.rows[at]
                     if number == 0 and whole.neighbour_keys is not None:
                         found = whole.neighbour_keys.shape[1]
@@ -545,7 +549,7 @@ class TiledScan:
                         neighbour_keys[:, found:] = -1
 
             fill_level_columns(values[:, number * width : (number + 1) * width], ancestor, compute)
-        neighbours = rows_of_keys(neighbour_keys, pyramid.levels[0].keys[voxels])
+        neighbours = rows_of_keys(neighbour_keys, levels[0].keys[voxels])
         # a scan of fewer than k level-0 voxels has fewer neighbours: as the whole-scan path
         width_found = min(config.k_neighbours, self._level_sizes[0])
         return FeatureTable(config.feature_names, values, point_row, neighbours[:, :width_found])
@@ -604,7 +608,7 @@ class TiledScan:
         config = self.config
         floor = _FIRST_HALO_VOXELS * config.voxel_sizes_m[number]
         densest = max(self.tiles, key=self.store.count)
-        level = self._pyramid(densest).levels[number]
+        level = self._level(densest, number)
         halo = floor
         if level.n_voxels >= config.k_neighbours:
             step = max(1, level.n_voxels // _HALO_SAMPLE)
@@ -740,7 +744,7 @@ class TiledScan:
                 x_low <= other[0] <= x_high and y_low <= other[1] <= y_high
             ):
                 continue
-            level = self._pyramid(other).levels[number]
+            level = self._level(other, number)
             parts.append((level, rows_in_box(level.xyz, box)))
         # the parts' rows concatenated, copied on every thread
         total = sum(rows.size for _, rows in parts)
