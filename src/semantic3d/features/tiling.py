@@ -189,6 +189,7 @@ class TiledScan:
         self._cache: OrderedDict[tuple[Tile, int], _TileLevel | NDArray[np.int64]] = OrderedDict()
         self._cache_bytes = 0
         self._cache_scale = 1  # tiles computed at once: each keeps its neighbours cached
+        self._part_starts: dict[Tile, tuple[int, ...]] = {}  # in a tile's pyramid file
         self._lock = threading.Lock()
         try:
             self.store = self._spill(chunks)
@@ -263,11 +264,8 @@ class TiledScan:
         return attribute_columns(points.cloud, self.config)
 
     # -- pass 2: pyramids ------------------------------------------------------------------
-    def _pyramid_path(self, tile: Tile, part: int) -> Path:
-        """A tile's pyramid part in the scratch folder: level ``part``, or (``-1``) the
-        level-0 voxel of each of its points."""
-        name = "points" if part < 0 else f"level{part}"
-        return self.workdir / f"{tile[0]}_{tile[1]}.{name}.pickle"
+    def _pyramid_path(self, tile: Tile) -> Path:
+        return self.workdir / f"{tile[0]}_{tile[1]}.pyramid.pickle"
 
     def _build_pyramids(self) -> None:
         """Every tile's pyramid, written to the scratch folder: tiles at the same time on
@@ -300,15 +298,19 @@ class TiledScan:
             origin=self.origin,
             attributes=self._attributes(points),
         )
-        # level by level: a level described whole, or a halo, reads its level alone
-        parts: list[tuple[int, object]] = [(-1, pyramid.point_voxel)]
-        for number, level in enumerate(pyramid.levels):
-            parts.append(
-                (number, _TileLevel(level.xyz, level.keys, level.attributes, level.parent))
-            )
-        for part, value in parts:
-            with self._pyramid_path(tile, part).open("wb") as stream:
+        # level by level, one after another in the tile's file: a level described whole,
+        # or a halo, reads its level alone
+        parts: list[object] = [
+            _TileLevel(level.xyz, level.keys, level.attributes, level.parent)
+            for level in pyramid.levels
+        ]
+        parts.append(pyramid.point_voxel)
+        starts = []
+        with self._pyramid_path(tile).open("wb") as stream:
+            for value in parts:
+                starts.append(stream.tell())
                 pickle.dump(value, stream, protocol=pickle.HIGHEST_PROTOCOL)
+        self._part_starts[tile] = tuple(starts)
         return [level.n_voxels for level in pyramid.levels]
 
     def _level(self, tile: Tile, number: int) -> _TileLevel:
@@ -324,7 +326,8 @@ class TiledScan:
         return point_voxel
 
     def _pyramid_part(self, tile: Tile, part: int) -> _TileLevel | NDArray[np.int64]:
-        """A tile's pyramid part through a byte-bounded LRU cache of parts (halos and the
+        """A tile's pyramid part (level ``part``, or ``-1``: the level-0 voxel of each of
+        its points) through a byte-bounded LRU cache of parts (halos and the
         levels described whole reread them; a part is one level, so a level gathered over
         every tile does not push the tiles' other levels through the cache)."""
         key = (tile, part)
@@ -334,7 +337,8 @@ class TiledScan:
                 self._cache.move_to_end(key)
                 return cached
         # A scratch file this object wrote itself: pickle loads it ~5x faster than npz.
-        with self._pyramid_path(tile, part).open("rb") as stream:
+        with self._pyramid_path(tile).open("rb") as stream:
+            stream.seek(self._part_starts[tile][part])
             value: _TileLevel | NDArray[np.int64] = pickle.load(stream)
         with self._lock:  # another thread may have loaded it meanwhile: keep one copy
             cached = self._cache.get(key)
