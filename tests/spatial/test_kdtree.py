@@ -10,6 +10,7 @@ from hypothesis import strategies as st
 
 from semantic3d.core.errors import ShapeError
 from semantic3d.core.threads import thread_limit
+from semantic3d.spatial import kdtree
 from semantic3d.spatial.kdtree import KdTree
 
 
@@ -45,6 +46,63 @@ def test_the_k_nearest_are_those_of_a_brute_force_search(
     expected_indices, expected_squared = _brute_force(points, queries, k)
     assert np.array_equal(indices, expected_indices)
     assert np.array_equal(squared, expected_squared)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    n=st.integers(1, 400),
+    k=st.integers(1, 20),
+    grid=st.sampled_from([0.0, 0.5, 4.0]),
+    seed=st.integers(0, 2**16),
+)
+def test_top_levels_split_on_every_thread_give_the_brute_force_results(
+    n: int, k: int, grid: float, seed: int
+) -> None:
+    """Nodes split about a sampled pivot on several threads (every node of the top levels
+    here), and at the median where the pivot splits them badly (grid = 4: duplicates)."""
+    rng = np.random.default_rng(seed)
+    points = (rng.random((n, 3)) * 4).astype(np.float32)
+    if grid:
+        points = (np.round(points / grid) * grid).astype(np.float32)
+    queries = np.concatenate([points[:20], rng.random((20, 3)) * 4]).astype(np.float32)
+    k = min(k, n)
+    saved = kdtree._PARALLEL_SPLIT_ROWS
+    kdtree._PARALLEL_SPLIT_ROWS = 2
+    try:
+        with thread_limit(8):
+            tree = KdTree(points, leaf_size=2)
+    finally:
+        kdtree._PARALLEL_SPLIT_ROWS = saved
+    left, right = tree.bounds[1:-1:2], tree.bounds[2::2]
+    assert np.array_equal(left[:, 1], right[:, 0])  # children share their parent's rows
+    assert np.array_equal(np.sort(tree.order), np.arange(n))
+    internal = np.arange(tree.axes.size - (1 << tree.depth))
+    axis = tree.axes[internal]
+    assert np.all(tree.boxes[2 * internal + 1, 3 + axis] <= tree.boxes[2 * internal + 2, axis])
+    indices, squared = tree.query(queries, k=k)
+    expected_indices, expected_squared = _brute_force(points, queries, k)
+    assert np.array_equal(indices, expected_indices)
+    assert np.array_equal(squared, expected_squared)
+
+
+def test_a_large_tree_splits_its_top_levels_on_every_thread() -> None:
+    rng = np.random.default_rng(5)
+    points = (rng.normal(0.0, 10.0, (300_000, 3)) * [1.0, 1.0, 0.1]).astype(np.float32)
+    queries = points[::997]
+    trees = {}
+    for n_threads in (1, 4):
+        with thread_limit(n_threads):
+            trees[n_threads] = KdTree(points)
+    one, four = trees[1], trees[4]
+    sizes = np.diff(four.bounds, axis=1)[:, 0]
+    assert not np.array_equal(one.bounds, four.bounds)  # the root split about a pivot
+    assert 0.25 <= sizes[1] / points.shape[0] <= 0.75
+    assert all(
+        np.array_equal(a, b)
+        for a, b in zip(one.query(queries, k=9), four.query(queries, k=9), strict=True)
+    )
+    expected = _brute_force(points, queries[:40], 9)
+    assert np.array_equal(four.query(queries[:40], k=9)[0], expected[0])
 
 
 def test_results_do_not_depend_on_the_thread_count() -> None:

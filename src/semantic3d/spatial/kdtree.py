@@ -4,7 +4,8 @@ Hand-written (numba) because the library it replaces here, pgeof's nanoflann sea
 holds the GIL for the whole call, builds its tree on one thread and starts one thread
 per core of the machine on every call whatever the process was asked to use: tiles of a
 scan could not be searched at the same time and ``--threads`` could not cap it. This tree
-is built level by level (the nodes of a level split in parallel), searched in parallel
+is built level by level (the nodes of a level split in parallel; a top level's few large
+nodes each split on every thread), searched in parallel
 over the queries, releases the GIL and runs on numba's threads (the package's budget,
 :mod:`semantic3d.core.threads`).
 
@@ -31,6 +32,10 @@ __all__ = ["KdTree"]
 LEAF_SIZE = 16
 _QUERY_BLOCK = 256  # queries per parallel task (one heap and stack each)
 _PRUNE_MARGIN = 1e-5  # relative: a node's float64 box distance vs float32 point distances
+_PARALLEL_SPLIT_ROWS = 1 << 16
+"""A node of a level with fewer nodes than threads is split on every thread from this
+many rows on (fewer: each node on one thread, the nodes of a level in parallel)."""
+_PIVOT_SAMPLE = 2048  # rows of a node sampled for its parallel split's pivot
 
 
 class KdTree:
@@ -53,7 +58,9 @@ class KdTree:
             depth += 1
         self.depth = depth
         # the points in tree order (a leaf's points contiguous) and their indices
-        self._sorted, self.order, self.bounds, self.boxes, self.axes = _build(points, depth)
+        self._sorted, self.order, self.bounds, self.boxes, self.axes = _build(
+            points, depth, numba.get_num_threads()
+        )
 
     @property
     def n_points(self) -> int:
@@ -156,23 +163,47 @@ def _box(points: Any, start: int, stop: int, out: Any) -> None:
             out[3 + axis] = max(out[3 + axis], value)
 
 
-@numba.njit(cache=True, nogil=True, parallel=True)
-def _build(
-    points: Any, depth: int
-) -> tuple[Any, Any, Any, Any, Any]:  # pragma: no cover - compiled
-    """A balanced tree in heap layout: node ``i`` has children ``2i+1``, ``2i+2``; leaves
-    are the ``2**depth`` nodes of the last level. Returns the points in tree order, the
-    point index of each of those rows, each node's rows (``bounds[i] = start, stop``) and
-    each node's box (``lo xyz, hi xyz``) and split axis."""
+def _build(points: NDArray[np.float32], depth: int, n_threads: int) -> tuple[Any, ...]:
+    """A tree in heap layout: node ``i`` has children ``2i+1``, ``2i+2``; leaves are the
+    ``2**depth`` nodes of the last level. Returns the points in tree order, the point
+    index of each of those rows, each node's rows (``bounds[i] = start, stop``) and each
+    node's box (``lo xyz, hi xyz``) and split axis.
+
+    A level with as many nodes as threads splits its nodes in parallel, each at its
+    median row (a selection on one thread). A level with fewer (the top ones: the root
+    alone would keep every other thread idle) splits its large nodes one after another,
+    each on every thread: its box reduced in parallel, its rows partitioned in parallel
+    about a pivot sampled from them and, when the pivot leaves less than a quarter on a
+    side, at the median row as before. Children's boxes never overlap along the split
+    axis, which is all a query needs: its result does not depend on where nodes are split.
+    """
     n = points.shape[0]
     n_nodes = (1 << (depth + 1)) - 1
     ordered = points.copy()
-    order = np.arange(n).astype(np.int64)
+    order = np.arange(n, dtype=np.int64)
     bounds = np.zeros((n_nodes, 2), np.int64)
     boxes = np.zeros((n_nodes, 6), np.float64)
     axes = np.zeros(n_nodes, np.int64)
     bounds[0, 1] = n
-    for level in range(depth + 1):
+    level = 0
+    while level <= depth and (1 << level) < n_threads and n >> level >= _PARALLEL_SPLIT_ROWS:
+        for node in range((1 << level) - 1, (1 << (level + 1)) - 1):
+            start, stop = int(bounds[node, 0]), int(bounds[node, 1])
+            _box_on_threads(ordered, start, stop, boxes[node])
+            if level < depth:
+                axes[node] = _split_on_threads(ordered, order, bounds, boxes[node], node, n_threads)
+        level += 1
+    _build_levels(ordered, order, bounds, boxes, axes, level, depth)
+    return ordered, order, bounds, boxes, axes
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _build_levels(
+    ordered: Any, order: Any, bounds: Any, boxes: Any, axes: Any, first_level: int, depth: int
+) -> None:  # pragma: no cover - compiled
+    """Levels ``first_level..depth`` of :func:`_build`: the nodes of a level in parallel,
+    each split at its median row on one thread."""
+    for level in range(first_level, depth + 1):
         first = (1 << level) - 1
         count = 1 << level
         for j in numba.prange(count):
@@ -182,7 +213,91 @@ def _build(
             boxes[node] = box
             if level < depth:
                 axes[node] = _split(ordered, order, bounds, box, node)
-    return ordered, order, bounds, boxes, axes
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _box_on_threads(points: Any, start: int, stop: int, out: Any) -> None:  # pragma: no cover
+    """:func:`_box` of rows ``start:stop``, reduced on every thread."""
+    x_low = y_low = z_low = np.inf
+    x_high = y_high = z_high = -np.inf
+    for row in numba.prange(start, stop):
+        x = np.float64(points[row, 0])
+        y = np.float64(points[row, 1])
+        z = np.float64(points[row, 2])
+        x_low = min(x_low, x)
+        y_low = min(y_low, y)
+        z_low = min(z_low, z)
+        x_high = max(x_high, x)
+        y_high = max(y_high, y)
+        z_high = max(z_high, z)
+    out[0], out[1], out[2] = x_low, y_low, z_low
+    out[3], out[4], out[5] = x_high, y_high, z_high
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _split_on_threads(
+    points: Any, order: Any, bounds: Any, box: Any, node: int, n_threads: int
+) -> int:  # pragma: no cover - compiled
+    """Split a node along its box's widest axis on every thread: rows below a pivot
+    sampled from the node's rows first (stable partition: counts per block, then each
+    block's rows to their places); at the median row (:func:`_split`) when the pivot
+    leaves less than a quarter on a side. Returns the axis."""
+    start, stop = bounds[node, 0], bounds[node, 1]
+    axis = 0
+    for candidate in range(1, 3):
+        if box[3 + candidate] - box[candidate] > box[3 + axis] - box[axis]:
+            axis = candidate
+    size = stop - start
+    step = max(1, size // _PIVOT_SAMPLE)
+    sample = np.sort(points[start:stop:step, axis])
+    pivot = sample[sample.shape[0] // 2]
+    n_blocks = max(1, min(4 * n_threads, size // 8192))
+    block = (size + n_blocks - 1) // n_blocks
+    below = np.zeros(n_blocks, np.int64)
+    for b in numba.prange(n_blocks):
+        count = 0
+        for row in range(start + b * block, min(stop, start + (b + 1) * block)):
+            if points[row, axis] < pivot:
+                count += 1
+        below[b] = count
+    n_below = below.sum()
+    if n_below < size // 4 or n_below > size - size // 4:
+        return _split(points, order, bounds, box, node)
+    low_at = np.empty(n_blocks, np.int64)
+    high_at = np.empty(n_blocks, np.int64)
+    low, high = 0, n_below
+    for b in range(n_blocks):
+        low_at[b] = low
+        high_at[b] = high
+        rows = max(0, min(stop, start + (b + 1) * block) - (start + b * block))
+        low += below[b]
+        high += rows - below[b]
+    moved = np.empty((size, 3), points.dtype)
+    moved_order = np.empty(size, np.int64)
+    for b in numba.prange(n_blocks):
+        low, high = low_at[b], high_at[b]
+        for row in range(start + b * block, min(stop, start + (b + 1) * block)):
+            if points[row, axis] < pivot:
+                place = low
+                low += 1
+            else:
+                place = high
+                high += 1
+            moved[place, 0] = points[row, 0]
+            moved[place, 1] = points[row, 1]
+            moved[place, 2] = points[row, 2]
+            moved_order[place] = order[row]
+    for i in numba.prange(size):
+        points[start + i, 0] = moved[i, 0]
+        points[start + i, 1] = moved[i, 1]
+        points[start + i, 2] = moved[i, 2]
+        order[start + i] = moved_order[i]
+    middle = start + n_below
+    bounds[2 * node + 1, 0] = start
+    bounds[2 * node + 1, 1] = middle
+    bounds[2 * node + 2, 0] = middle
+    bounds[2 * node + 2, 1] = stop
+    return axis
 
 
 @numba.njit(cache=True, nogil=True)
