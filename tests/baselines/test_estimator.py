@@ -10,6 +10,7 @@ from sklearn.utils.estimator_checks import parametrize_with_checks
 from semantic3d.baselines.covariance.estimator import CovarianceClassifier
 from semantic3d.baselines.covariance.forest import _float32_floor, compile_forest
 from semantic3d.core.errors import ShapeError
+from semantic3d.core.threads import thread_limit
 
 
 @parametrize_with_checks([CovarianceClassifier(n_estimators=5, random_state=0)])
@@ -27,6 +28,11 @@ def test_compiled_forest_reproduces_scikit_learn_predictions() -> None:
     np.testing.assert_allclose(clf.predict_proba(test), expected, rtol=0, atol=1e-12)
     np.testing.assert_array_equal(clf.predict(test), clf.forest_.predict(test))
     assert list(clf.classes_) == sorted(set(y))
+    # blocks of rows taken as threads come free: the same bytes on any number of threads
+    with thread_limit(1):
+        one = clf.predict_proba(test)
+    with thread_limit(3):
+        np.testing.assert_array_equal(clf.predict_proba(test), one)
 
 
 def test_features_exactly_on_a_threshold_go_the_same_way() -> None:

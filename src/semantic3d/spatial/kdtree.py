@@ -32,7 +32,7 @@ __all__ = ["KdTree"]
 LEAF_SIZE = 16
 _QUERY_BLOCK = 256  # queries per parallel task (one heap and stack each)
 _PRUNE_MARGIN = 1e-5  # relative: a node's float64 box distance vs float32 point distances
-_PARALLEL_SPLIT_ROWS = 1 << 16
+_PARALLEL_SPLIT_ROWS = 1 << 14
 """A node of a level with fewer nodes than threads is split on every thread from this
 many rows on (fewer: each node on one thread, the nodes of a level in parallel)."""
 _PIVOT_SAMPLE = 2048  # rows of a node sampled for its parallel split's pivot

@@ -18,6 +18,7 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
+from semantic3d.core.atomic import take_next
 from semantic3d.core.errors import ShapeError
 
 _BLOCK_ROWS = 256
@@ -73,8 +74,18 @@ class CompiledForest:
             _writable(self.right),
             _writable(self.roots),
         )
+        leaf_values = _writable(self.leaf_values)
         _predict_kernel(
-            x, feature, threshold, child, leaf_row, roots, depth, _writable(self.leaf_values), out
+            x,
+            feature,
+            threshold,
+            child,
+            leaf_row,
+            roots,
+            depth,
+            leaf_values,
+            out,
+            numba.get_num_threads(),
         )
         return out
 
@@ -253,41 +264,47 @@ def _predict_kernel(
     depth: NDArray[np.int64],
     leaf_values: NDArray[np.float64],
     out: NDArray[np.float64],
+    n_threads: int,
 ) -> None:  # pragma: no cover - compiled
     n_rows = x.shape[0]
     n_trees = roots.size
     n_classes = leaf_values.shape[1]
     n_blocks = (n_rows + _BLOCK_ROWS - 1) // _BLOCK_ROWS
-    for block in numba.prange(n_blocks):
-        begin = block * _BLOCK_ROWS
-        end = min(begin + _BLOCK_ROWS, n_rows)
-        nodes = np.empty(_WALKERS, np.uint32)
-        for t in range(n_trees):
-            root = roots[t]
-            steps = depth[t]
-            row = begin
-            while row + _WALKERS <= end:
-                for r in range(_WALKERS):  # constant trip counts: unrolled
-                    nodes[r] = root
-                for _ in range(steps):
+    taken = np.zeros(1, np.int64)
+    for _worker in numba.prange(max(1, min(n_threads, n_blocks))):  # blocks as threads come free
+        while True:
+            block = take_next(taken)
+            if block >= n_blocks:
+                break
+            begin = block * _BLOCK_ROWS
+            end = min(begin + _BLOCK_ROWS, n_rows)
+            nodes = np.empty(_WALKERS, np.uint32)
+            for t in range(n_trees):
+                root = roots[t]
+                steps = depth[t]
+                row = begin
+                while row + _WALKERS <= end:
+                    for r in range(_WALKERS):  # constant trip counts: unrolled
+                        nodes[r] = root
+                    for _ in range(steps):
+                        for r in range(_WALKERS):
+                            node = nodes[r]
+                            nodes[r] = child[node] + np.uint32(
+                                x[row + r, feature[node]] > threshold[node]
+                            )
                     for r in range(_WALKERS):
-                        node = nodes[r]
-                        nodes[r] = child[node] + np.uint32(
-                            x[row + r, feature[node]] > threshold[node]
-                        )
-                for r in range(_WALKERS):
-                    leaf = leaf_row[nodes[r]]
+                        leaf = leaf_row[nodes[r]]
+                        for c in range(n_classes):
+                            out[row + r, c] += leaf_values[leaf, c]
+                    row += _WALKERS
+                while row < end:  # the block's last rows, one at a time
+                    node = root
+                    for _ in range(steps):
+                        node = child[node] + np.uint32(x[row, feature[node]] > threshold[node])
+                    leaf = leaf_row[node]
                     for c in range(n_classes):
-                        out[row + r, c] += leaf_values[leaf, c]
-                row += _WALKERS
-            while row < end:  # the block's last rows, one at a time
-                node = root
-                for _ in range(steps):
-                    node = child[node] + np.uint32(x[row, feature[node]] > threshold[node])
-                leaf = leaf_row[node]
+                        out[row, c] += leaf_values[leaf, c]
+                    row += 1
+            for row in range(begin, end):
                 for c in range(n_classes):
-                    out[row, c] += leaf_values[leaf, c]
-                row += 1
-        for row in range(begin, end):
-            for c in range(n_classes):
-                out[row, c] /= n_trees
+                    out[row, c] /= n_trees
