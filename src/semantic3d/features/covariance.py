@@ -36,8 +36,11 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
+from semantic3d.core.atomic import take_next
 from semantic3d.core.errors import ShapeError
 from semantic3d.features.names import COVARIANCE_FEATURES, MOMENT_FEATURES
+
+_BLOCK_ROWS = 512  # rows a thread takes at a time in the row kernels
 
 N_COVARIANCE_COLUMNS = len(COVARIANCE_FEATURES) + len(MOMENT_FEATURES)
 
@@ -66,7 +69,7 @@ def compute_covariance_features(
     """
     indices = _check_inputs(points, neighbours, queries)
     out = np.empty((indices.shape[0], N_COVARIANCE_COLUMNS), np.float32)
-    covariance_kernel(points, indices, queries, out)
+    covariance_kernel(points, indices, queries, out, numba.get_num_threads())
     return out
 
 
@@ -284,10 +287,20 @@ def covariance_kernel(
     neighbours: NDArray[np.integer],
     queries: NDArray[np.float64],
     out: NDArray[np.float32],
+    n_threads: int,
 ) -> None:  # pragma: no cover - compiled
-    """Write the 13 columns of every query into ``out`` (unchecked inputs; see above)."""
-    for row in numba.prange(neighbours.shape[0]):
-        _covariance_row(points, neighbours, queries, row, out)
+    """Write the 13 columns of every query into ``out`` (unchecked inputs; see above);
+    blocks of rows taken as threads come free."""
+    n_rows = neighbours.shape[0]
+    n_blocks = (n_rows + _BLOCK_ROWS - 1) // _BLOCK_ROWS
+    taken = np.zeros(1, np.int64)
+    for _worker in numba.prange(max(1, min(n_threads, n_blocks))):
+        while True:
+            block = take_next(taken)
+            if block >= n_blocks:
+                break
+            for row in range(block * _BLOCK_ROWS, min(n_rows, (block + 1) * _BLOCK_ROWS)):
+                _covariance_row(points, neighbours, queries, row, out)
 
 
 # Hand-written: one pass over the neighbour indices without an (m, k) gather temporary.
@@ -315,11 +328,23 @@ def geometry_kernel(
     neighbours: NDArray[np.integer],
     queries: NDArray[np.float64],
     out: NDArray[np.float32],
+    n_threads: int,
 ) -> None:  # pragma: no cover - compiled
-    """Write the 13 covariance/moment columns then the 3 height columns into ``out``."""
-    for row in numba.prange(neighbours.shape[0]):
-        _covariance_row(points, neighbours, queries, row, out)
-        _height_row(points, neighbours, queries, row, out, N_COVARIANCE_COLUMNS)
+    """Write the 13 covariance/moment columns then the 3 height columns into ``out``;
+    blocks of rows taken as threads come free (a row's eigen-decomposition costs what its
+    neighbourhood makes it, and a thread slowed by another process would hold the others
+    at the end of equal shares)."""
+    n_rows = neighbours.shape[0]
+    n_blocks = (n_rows + _BLOCK_ROWS - 1) // _BLOCK_ROWS
+    taken = np.zeros(1, np.int64)
+    for _worker in numba.prange(max(1, min(n_threads, n_blocks))):
+        while True:
+            block = take_next(taken)
+            if block >= n_blocks:
+                break
+            for row in range(block * _BLOCK_ROWS, min(n_rows, (block + 1) * _BLOCK_ROWS)):
+                _covariance_row(points, neighbours, queries, row, out)
+                _height_row(points, neighbours, queries, row, out, N_COVARIANCE_COLUMNS)
 
 
 @numba.njit(cache=True, nogil=True, inline="always")

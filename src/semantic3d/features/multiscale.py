@@ -12,6 +12,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -148,7 +149,7 @@ def compute_level_features(
     else:
         block = np.empty(target.shape, np.float32)
     kernel = geometry_kernel if config.spherical_height else covariance_kernel
-    kernel(index.xyz, indices, queries, block)
+    kernel(index.xyz, indices, queries, block, numba.get_num_threads())
     if block is not target and block is not out:
         copy_rows(block, target)
     reach = found.kth_distance
