@@ -85,7 +85,7 @@ class _Reader:
         self.window_bytes = max(int(window_bytes), 1) * max(1, numba.get_num_threads() // 4)
         self.batch_rows = chunk_size * max(1, -(-MIN_BATCH_ROWS // chunk_size))
         # several segments per thread: equal bytes are not equal work on a loaded machine
-        self.max_segments = max(1, numba.get_num_threads() * 4)
+        self.max_segments = max(1, numba.get_num_threads() * 16)
         self.slow = np.empty((self.max_segments, _SLOW_CAPACITY, 4), np.int64)
         self.state = np.zeros((self.max_segments, kernels.STATE_SIZE), np.int64)
         self.lines_before = 0  # lines of earlier batches
