@@ -211,7 +211,8 @@ def map_in_threads(
     memory is bounded by them. Each task runs with numba on ``numba_threads_per_task``
     threads (a number, or a function of the item): 1 where tasks alone fill the cores. A
     task starts only when its threads are free, so the tasks running at once never use
-    more than ``n_threads`` threads together.
+    more than ``n_threads`` threads together. Run inside another map's task with one
+    thread a task, it lends that map the threads its tail leaves idle (:class:`_TailLender`).
     The first exception raised by a task is raised here (the earliest in input order when
     ``ordered``); tasks not started are cancelled and running ones are waited for, also
     when the caller stops iterating. With one thread everything runs in the calling thread
