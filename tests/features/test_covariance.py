@@ -171,7 +171,7 @@ def test_the_fused_kernel_is_the_covariance_and_height_kernels_bit_for_bit(dtype
     neighbours[:20] = np.arange(10)
     queries = points[rng.integers(0, 500, size=400)] + rng.normal(size=(400, 3)) * 0.1
     fused = np.empty((400, N_COVARIANCE_COLUMNS + 3), np.float32)
-    geometry_kernel(points, as_kernel_indices(neighbours, 500), queries, fused, 3)
+    geometry_kernel(points, as_kernel_indices(neighbours, 500), queries, fused, True, 3)
     separate = np.hstack(
         [
             compute_covariance_features(points, neighbours, queries),

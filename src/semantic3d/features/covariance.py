@@ -69,7 +69,7 @@ def compute_covariance_features(
     """
     indices = _check_inputs(points, neighbours, queries)
     out = np.empty((indices.shape[0], N_COVARIANCE_COLUMNS), np.float32)
-    covariance_kernel(points, indices, queries, out, numba.get_num_threads())
+    geometry_kernel(points, indices, queries, out, False, numba.get_num_threads())
     return out
 
 
@@ -281,28 +281,6 @@ def _eigen_batch(
             vectors[m, r, 2] = v[r, i2]
 
 
-@numba.njit(cache=True, nogil=True, parallel=True)
-def covariance_kernel(
-    points: NDArray[np.float64],
-    neighbours: NDArray[np.integer],
-    queries: NDArray[np.float64],
-    out: NDArray[np.float32],
-    n_threads: int,
-) -> None:  # pragma: no cover - compiled
-    """Write the 13 columns of every query into ``out`` (unchecked inputs; see above);
-    blocks of rows taken as threads come free."""
-    n_rows = neighbours.shape[0]
-    n_blocks = (n_rows + _BLOCK_ROWS - 1) // _BLOCK_ROWS
-    taken = np.zeros(1, np.int64)
-    for _worker in numba.prange(max(1, min(n_threads, n_blocks))):
-        while True:
-            block = take_next(taken)
-            if block >= n_blocks:
-                break
-            for row in range(block * _BLOCK_ROWS, min(n_rows, (block + 1) * _BLOCK_ROWS)):
-                _covariance_row(points, neighbours, queries, row, out)
-
-
 # Hand-written: one pass over the neighbour indices without an (m, k) gather temporary.
 @numba.njit(cache=True, nogil=True, parallel=True)
 def height_kernel(
@@ -317,23 +295,25 @@ def height_kernel(
         _height_row(points, neighbours, queries, row, out, 0)
 
 
-# Hand-written: the covariance, moment and height columns of a level in one parallel pass
-# (one kernel launch per level instead of two). It inlines the rows of
-# ``covariance_kernel`` and ``height_kernel``, so its columns are theirs bit for bit. The
-# three kernels and their row functions stay in this one file: numba's cache does not see
-# changes to compiled functions defined in other files.
+# Hand-written: the covariance and moment columns (and, with ``with_height``, the height
+# columns) of a level in one parallel pass (one kernel launch per level instead of two).
+# It inlines the rows of ``height_kernel``, so its height columns are that kernel's bit for
+# bit. The kernels and their row functions stay in this one file: numba's cache does not
+# see changes to compiled functions defined in other files.
 @numba.njit(cache=True, nogil=True, parallel=True)
 def geometry_kernel(
     points: NDArray[np.float64],
     neighbours: NDArray[np.integer],
     queries: NDArray[np.float64],
     out: NDArray[np.float32],
+    with_height: bool,
     n_threads: int,
 ) -> None:  # pragma: no cover - compiled
-    """Write the 13 covariance/moment columns then the 3 height columns into ``out``;
-    blocks of rows taken as threads come free (a row's eigen-decomposition costs what its
-    neighbourhood makes it, and a thread slowed by another process would hold the others
-    at the end of equal shares)."""
+    """Write the 13 covariance/moment columns (then, ``with_height``, the 3 height
+    columns) of every query into ``out`` (unchecked inputs; see above); blocks of rows
+    taken as threads come free (a row's eigen-decomposition costs what its neighbourhood
+    makes it, and a thread slowed by another process would hold the others at the end of
+    equal shares)."""
     n_rows = neighbours.shape[0]
     n_blocks = (n_rows + _BLOCK_ROWS - 1) // _BLOCK_ROWS
     taken = np.zeros(1, np.int64)
@@ -344,7 +324,8 @@ def geometry_kernel(
                 break
             for row in range(block * _BLOCK_ROWS, min(n_rows, (block + 1) * _BLOCK_ROWS)):
                 _covariance_row(points, neighbours, queries, row, out)
-                _height_row(points, neighbours, queries, row, out, N_COVARIANCE_COLUMNS)
+                if with_height:
+                    _height_row(points, neighbours, queries, row, out, N_COVARIANCE_COLUMNS)
 
 
 @numba.njit(cache=True, nogil=True, inline="always")

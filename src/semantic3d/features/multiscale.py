@@ -23,7 +23,6 @@ from semantic3d.features.attributes import compute_attribute_features
 from semantic3d.features.config import FeatureConfig
 from semantic3d.features.covariance import (
     N_COVARIANCE_COLUMNS,
-    covariance_kernel,
     geometry_kernel,
 )
 from semantic3d.features.cylinders import N_CYLINDER_COLUMNS, compute_cylinder_features
@@ -148,8 +147,9 @@ def compute_level_features(
         block = target
     else:
         block = np.empty(target.shape, np.float32)
-    kernel = geometry_kernel if config.spherical_height else covariance_kernel
-    kernel(index.xyz, indices, queries, block, numba.get_num_threads())
+    geometry_kernel(
+        index.xyz, indices, queries, block, config.spherical_height, numba.get_num_threads()
+    )
     if block is not target and block is not out:
         copy_rows(block, target)
     reach = found.kth_distance
