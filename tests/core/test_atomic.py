@@ -7,7 +7,7 @@ import numba
 import numpy as np
 import pytest
 
-from semantic3d.core.atomic import take_next
+from semantic3d.core.atomic import row_workers, take_next, take_row_block
 
 
 @numba.njit(parallel=True, cache=False)
@@ -59,3 +59,28 @@ def test_only_an_int64_array_is_a_counter() -> None:
 
     with pytest.raises(numba.core.errors.TypingError):
         take(np.zeros(1, np.int32))
+
+
+@numba.njit(parallel=True, cache=False)
+def _rows_by_block(n_rows: int, block: int, n_threads: int) -> np.ndarray:
+    times_written = np.zeros(n_rows, np.int64)
+    taken = np.zeros(1, np.int64)
+    for _ in numba.prange(row_workers(n_threads, n_rows, block)):
+        while True:
+            start, stop = take_row_block(taken, n_rows, block)
+            if start >= stop:
+                break
+            for row in range(start, stop):
+                times_written[row] += 1
+    return times_written
+
+
+@pytest.mark.parametrize(("n_rows", "block"), [(0, 4), (1, 4), (9, 4), (12, 4), (1000, 7)])
+def test_row_blocks_cover_every_row_once(n_rows: int, block: int) -> None:
+    assert (_rows_by_block(n_rows, block, 3) == 1).all()
+
+    @numba.njit(cache=False)
+    def workers(n_threads: int) -> int:
+        return row_workers(n_threads, n_rows, block)
+
+    assert workers(3) == max(1, min(3, -(-n_rows // block)))

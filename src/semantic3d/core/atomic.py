@@ -16,18 +16,28 @@ kernel's threads takes the next piece's number until none is left::
                 break
             ...  # piece writes only its own outputs
 
-Results do not depend on which thread ran which piece.
+Results do not depend on which thread ran which piece. Kernels over rows take them in
+blocks (:func:`row_workers`, :func:`take_row_block`)::
+
+    taken = np.zeros(1, np.int64)
+    for _ in nb.prange(row_workers(n_threads, n_rows, BLOCK)):
+        while True:
+            start, stop = take_row_block(taken, n_rows, BLOCK)
+            if start >= stop:
+                break
+            for row in range(start, stop):
+                ...
 """
 
 from __future__ import annotations
 
 from typing import Any
 
-from numba import types
+from numba import njit, types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
-__all__ = ["take_next"]
+__all__ = ["row_workers", "take_next", "take_row_block"]
 
 
 def _take_next(typingctx: Any, counter: Any) -> Any:  # pragma: no cover - compiled
@@ -50,3 +60,18 @@ def _take_next(typingctx: Any, counter: Any) -> Any:  # pragma: no cover - compi
 take_next: Any = intrinsic(_take_next)
 """``take_next(counter)`` in a compiled kernel: ``counter[0] += 1`` as one atomic step,
 returning the value before (``counter``: a C-contiguous int64 array)."""
+
+
+@njit(cache=True, nogil=True, inline="always")
+def take_row_block(counter: Any, n_rows: Any, block: Any) -> tuple[Any, Any]:  # pragma: no cover
+    """The next block of rows ``0 .. n_rows`` in blocks of ``block`` (:func:`take_next`):
+    ``(start, stop)``, with ``start >= stop`` once every block has been taken."""
+    start = take_next(counter) * block
+    return start, min(n_rows, start + block)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def row_workers(n_threads: Any, n_rows: Any, block: Any) -> Any:  # pragma: no cover
+    """How many threads to start on ``n_rows`` rows in blocks of ``block``: no more than
+    there are blocks, at least one."""
+    return max(1, min(n_threads, (n_rows + block - 1) // block))

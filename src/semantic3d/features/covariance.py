@@ -36,7 +36,7 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
-from semantic3d.core.atomic import take_next
+from semantic3d.core.atomic import row_workers, take_row_block
 from semantic3d.core.errors import ShapeError
 from semantic3d.features.names import COVARIANCE_FEATURES, MOMENT_FEATURES
 
@@ -315,14 +315,13 @@ def geometry_kernel(
     makes it, and a thread slowed by another process would hold the others at the end of
     equal shares)."""
     n_rows = neighbours.shape[0]
-    n_blocks = (n_rows + _BLOCK_ROWS - 1) // _BLOCK_ROWS
     taken = np.zeros(1, np.int64)
-    for _worker in numba.prange(max(1, min(n_threads, n_blocks))):
+    for _worker in numba.prange(row_workers(n_threads, n_rows, _BLOCK_ROWS)):
         while True:
-            block = take_next(taken)
-            if block >= n_blocks:
+            start, stop = take_row_block(taken, n_rows, _BLOCK_ROWS)
+            if start >= stop:
                 break
-            for row in range(block * _BLOCK_ROWS, min(n_rows, (block + 1) * _BLOCK_ROWS)):
+            for row in range(start, stop):
                 _covariance_row(points, neighbours, queries, row, out)
                 if with_height:
                     _height_row(points, neighbours, queries, row, out, N_COVARIANCE_COLUMNS)

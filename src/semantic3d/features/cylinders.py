@@ -26,7 +26,7 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
-from semantic3d.core.atomic import take_next
+from semantic3d.core.atomic import row_workers, take_row_block
 from semantic3d.core.errors import ShapeError
 from semantic3d.features._row_kernels import take_rows
 from semantic3d.features.names import CYLINDER_FEATURES
@@ -133,16 +133,15 @@ def _cylinder_kernel(
     n_threads: int,
 ) -> None:  # pragma: no cover - compiled
     m = queries.shape[0]
-    n_blocks = (m + _QUERY_BLOCK - 1) // _QUERY_BLOCK
     taken = np.zeros(1, np.int64)
     # blocks taken as threads come free: a query costs the points around it (dense near
     # the scanner, sparse far away), so equal shares of the queries are not equal work
-    for _ in numba.prange(max(1, min(n_threads, n_blocks))):
+    for _ in numba.prange(row_workers(n_threads, m, _QUERY_BLOCK)):
         while True:
-            block = take_next(taken)
-            if block >= n_blocks:
+            start, stop = take_row_block(taken, m, _QUERY_BLOCK)
+            if start >= stop:
                 break
-            for row in range(block * _QUERY_BLOCK, min(m, (block + 1) * _QUERY_BLOCK)):
+            for row in range(start, stop):
                 _cylinder(points, cell_codes, starts, queries, origin, cell, radius_m, out, row)
 
 

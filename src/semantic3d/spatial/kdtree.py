@@ -24,7 +24,7 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
-from semantic3d.core.atomic import take_next
+from semantic3d.core.atomic import row_workers, take_row_block
 from semantic3d.core.errors import ShapeError
 
 __all__ = ["KdTree"]
@@ -423,19 +423,18 @@ def _query(
     n_threads: int,
 ) -> None:  # pragma: no cover - compiled
     m, k = indices.shape
-    n_blocks = (m + _QUERY_BLOCK - 1) // _QUERY_BLOCK
     taken = np.zeros(1, np.int64)
     # blocks taken as threads come free: a search costs more where points crowd or tie
-    for _ in numba.prange(max(1, min(n_threads, n_blocks))):
+    for _ in numba.prange(row_workers(n_threads, m, _QUERY_BLOCK)):
         best_d = np.empty(k, np.float32)
         best_i = np.empty(k, np.int64)
         stack = np.empty(depth + 2, np.int64)
         stack_d = np.empty((depth + 2, 4), np.float64)
         while True:
-            block = take_next(taken)
-            if block >= n_blocks:
+            start, stop = take_row_block(taken, m, _QUERY_BLOCK)
+            if start >= stop:
                 break
-            for row in range(block * _QUERY_BLOCK, min(m, (block + 1) * _QUERY_BLOCK)):
+            for row in range(start, stop):
                 _search(
                     points,
                     order,

@@ -18,7 +18,7 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
-from semantic3d.core.atomic import take_next
+from semantic3d.core.atomic import row_workers, take_row_block
 from semantic3d.core.errors import ShapeError
 
 _BLOCK_ROWS = 256
@@ -269,15 +269,12 @@ def _predict_kernel(
     n_rows = x.shape[0]
     n_trees = roots.size
     n_classes = leaf_values.shape[1]
-    n_blocks = (n_rows + _BLOCK_ROWS - 1) // _BLOCK_ROWS
-    taken = np.zeros(1, np.int64)
-    for _worker in numba.prange(max(1, min(n_threads, n_blocks))):  # blocks as threads come free
+    taken = np.zeros(1, np.int64)  # blocks of rows taken as threads come free
+    for _worker in numba.prange(row_workers(n_threads, n_rows, _BLOCK_ROWS)):
         while True:
-            block = take_next(taken)
-            if block >= n_blocks:
+            begin, end = take_row_block(taken, n_rows, _BLOCK_ROWS)
+            if begin >= end:
                 break
-            begin = block * _BLOCK_ROWS
-            end = min(begin + _BLOCK_ROWS, n_rows)
             nodes = np.empty(_WALKERS, np.uint32)
             for t in range(n_trees):
                 root = roots[t]

@@ -18,7 +18,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from semantic3d.core.atomic import take_next
+from semantic3d.core.atomic import row_workers, take_row_block
 from semantic3d.datasets.simulator.kernels import (
     HIT_GROUND,
     STREAM_COLOUR,
@@ -141,16 +141,15 @@ def shade_kernel(
     rgb = np.empty((n, 3), np.uint8)
     out_labels = np.empty(n, np.uint8)
     sun_x, sun_y, sun_z = _SUN[0], _SUN[1], _SUN[2]
-    n_blocks = (n + _POINT_BLOCK - 1) // _POINT_BLOCK
     taken = np.zeros(1, np.int64)
     # blocks of points taken as threads come free: ground and each kind of primitive
     # cost their own time, so equal shares of the points are not equal work
-    for _ in prange(max(1, min(n_threads, n_blocks))):
+    for _ in prange(row_workers(n_threads, n, _POINT_BLOCK)):
         while True:
-            block = take_next(taken)
-            if block >= n_blocks:
+            start, stop = take_row_block(taken, n, _POINT_BLOCK)
+            if start >= stop:
                 break
-            for k in range(block * _POINT_BLOCK, min(n, (block + 1) * _POINT_BLOCK)):
+            for k in range(start, stop):
                 dx = directions[k, 0]
                 dy = directions[k, 1]
                 dz = directions[k, 2]

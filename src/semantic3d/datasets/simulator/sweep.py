@@ -17,7 +17,7 @@ import numpy as np
 from numba import njit, prange
 from numpy.typing import NDArray
 
-from semantic3d.core.atomic import take_next
+from semantic3d.core.atomic import row_workers, take_row_block
 from semantic3d.datasets.simulator.kernels import INF, NO_HIT
 from semantic3d.datasets.simulator.raycast import trace_ray
 
@@ -110,16 +110,15 @@ def sweep_cast_kernel(
     n = columns * n_elevation
     distance = np.empty(n, np.float64)
     hit = np.empty(n, np.int32)
-    n_blocks = (n + _RAY_BLOCK - 1) // _RAY_BLOCK
     taken = np.zeros(1, np.int64)
     # blocks of rays taken as threads come free: a ray into open space crosses many grid
     # cells, one into a wall few, so equal shares of the columns are not equal work
-    for _ in prange(max(1, min(n_threads, n_blocks))):
+    for _ in prange(row_workers(n_threads, n, _RAY_BLOCK)):
         while True:
-            block = take_next(taken)
-            if block >= n_blocks:
+            start, stop = take_row_block(taken, n, _RAY_BLOCK)
+            if start >= stop:
                 break
-            for k in range(block * _RAY_BLOCK, min(n, (block + 1) * _RAY_BLOCK)):
+            for k in range(start, stop):
                 c = k // n_elevation
                 i = k - c * n_elevation
                 j = first + c
