@@ -243,10 +243,7 @@ def _split_on_threads(
     block's rows to their places); at the median row (:func:`_split`) when the pivot
     leaves less than a quarter on a side. Returns the axis."""
     start, stop = bounds[node, 0], bounds[node, 1]
-    axis = 0
-    for candidate in range(1, 3):
-        if box[3 + candidate] - box[candidate] > box[3 + axis] - box[axis]:
-            axis = candidate
+    axis = _widest_axis(box)
     size = stop - start
     step = max(1, size // _PIVOT_SAMPLE)
     sample = np.sort(points[start:stop:step, axis])
@@ -293,10 +290,7 @@ def _split_on_threads(
         points[start + i, 2] = moved[i, 2]
         order[start + i] = moved_order[i]
     middle = start + n_below
-    bounds[2 * node + 1, 0] = start
-    bounds[2 * node + 1, 1] = middle
-    bounds[2 * node + 2, 0] = middle
-    bounds[2 * node + 2, 1] = stop
+    _set_children(bounds, node, start, middle, stop)
     return axis
 
 
@@ -304,18 +298,33 @@ def _split_on_threads(
 def _split(points: Any, order: Any, bounds: Any, box: Any, node: int) -> int:
     """Split a node at its middle row along its box's widest axis; return the axis."""
     start, stop = bounds[node, 0], bounds[node, 1]
+    axis = _widest_axis(box)
+    middle = start + (stop - start) // 2
+    if stop - start > 1:
+        _select(points, order, start, stop, middle, axis)
+    _set_children(bounds, node, start, middle, stop)
+    return axis
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _widest_axis(box: Any) -> int:  # pragma: no cover - compiled
+    """The axis along which ``box`` (``lo xyz, hi xyz``) is widest (the first of equals)."""
     axis = 0
     for candidate in range(1, 3):
         if box[3 + candidate] - box[candidate] > box[3 + axis] - box[axis]:
             axis = candidate
-    middle = start + (stop - start) // 2
-    if stop - start > 1:
-        _select(points, order, start, stop, middle, axis)
+    return axis
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _set_children(
+    bounds: Any, node: int, start: int, middle: int, stop: int
+) -> None:  # pragma: no cover
+    """Node ``node``'s children hold its rows ``start:middle`` and ``middle:stop``."""
     bounds[2 * node + 1, 0] = start
     bounds[2 * node + 1, 1] = middle
     bounds[2 * node + 2, 0] = middle
     bounds[2 * node + 2, 1] = stop
-    return axis
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
