@@ -11,6 +11,7 @@ from hypothesis import strategies as st
 from semantic3d.core.threads import thread_limit
 from semantic3d.features._row_kernels import (
     copy_rows,
+    distinct_values,
     exact_rows,
     leading_columns,
     put_rows,
@@ -136,3 +137,30 @@ def test_box_selection_and_puts_equal_numpy(n: int) -> None:
     np.testing.assert_array_equal(out[3:], xyz[inside])
     np.testing.assert_array_equal(out_keys[3:], keys[inside])
     assert not out[:3].any() and not out_keys[:3].any()
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    n=st.integers(1, 90_000),
+    largest=st.integers(0, 300_000),
+    in_order=st.booleans(),
+    seed=st.integers(0, 2**32 - 1),
+    threads=st.sampled_from(THREADS),
+)
+def test_distinct_values_equal_numpy_unique(
+    n: int, largest: int, in_order: bool, seed: int, threads: int
+) -> None:
+    """Distinct values, each value's rank, and whether the values already are their own
+    distinct values in order (a level's voxels filled in place) on any number of threads."""
+    rng = np.random.default_rng(seed)
+    values = (
+        np.arange(n, dtype=np.int64) * (1 + largest // max(1, n))
+        if in_order
+        else rng.integers(0, largest + 1, n)
+    )
+    with thread_limit(threads):
+        distinct, inverse, same = distinct_values(values)
+    expected, expected_inverse = np.unique(values, return_inverse=True)
+    np.testing.assert_array_equal(distinct, expected)
+    np.testing.assert_array_equal(inverse, expected_inverse.reshape(-1))
+    assert same == (expected.size == n and np.array_equal(expected, values))

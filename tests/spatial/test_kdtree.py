@@ -115,6 +115,50 @@ def test_results_do_not_depend_on_the_thread_count() -> None:
     assert all(np.array_equal(a, b) for a, b in zip(one, four, strict=True))
 
 
+@pytest.mark.parametrize("n", [1, 40, 5_000, 16_000, 70_000])
+def test_every_node_holds_its_rows_on_any_number_of_threads(n: int) -> None:
+    """Nodes split level by level, then subtrees taken whole by threads as they come
+    free: every node's box holds its rows exactly, children split its rows along its axis
+    (the lower child's rows not above the upper's), and below the size at which a top
+    node is split on every thread (about a pivot) the tree is the same arrays however many
+    threads built it."""
+    from semantic3d.spatial.kdtree import _PARALLEL_SPLIT_ROWS
+
+    rng = np.random.default_rng(n)
+    points = np.round(rng.normal(size=(n, 3)), 1).astype(np.float32)  # with duplicates
+    trees = []
+    for threads in (1, 2, 3, 5):
+        with thread_limit(threads):
+            tree = KdTree(points)
+        arrays = (tree._sorted, tree.order, tree.bounds, tree.boxes, tree.axes)
+        trees.append(arrays)
+        ordered, order, bounds, boxes, axes = arrays
+        np.testing.assert_array_equal(ordered, points[order])
+        np.testing.assert_array_equal(np.sort(order), np.arange(n))
+        leaves = bounds[(1 << tree.depth) - 1 :]
+        assert leaves[0, 0] == 0 and leaves[-1, 1] == n
+        np.testing.assert_array_equal(leaves[1:, 0], leaves[:-1, 1])
+        for node in range(bounds.shape[0]):
+            start, stop = bounds[node]
+            if stop > start:
+                rows = ordered[start:stop].astype(np.float64)
+                np.testing.assert_array_equal(boxes[node, :3], rows.min(axis=0))
+                np.testing.assert_array_equal(boxes[node, 3:], rows.max(axis=0))
+            if 2 * node + 2 < bounds.shape[0]:
+                low, high = bounds[2 * node + 1], bounds[2 * node + 2]
+                assert low[0] == start and low[1] == high[0] and high[1] == stop
+                if low[1] > low[0] and high[1] > high[0]:
+                    axis = axes[node]
+                    assert (
+                        ordered[low[0] : low[1], axis].max()
+                        <= ordered[high[0] : high[1], axis].min()
+                    )
+    if n < _PARALLEL_SPLIT_ROWS:
+        for other in trees[1:]:
+            for a, b in zip(trees[0], other, strict=True):
+                np.testing.assert_array_equal(a, b)
+
+
 def test_bad_shapes_and_k_are_refused() -> None:
     tree = KdTree(np.zeros((3, 3), np.float32))
     with pytest.raises(ShapeError, match=r"expected \(n, 3\)"):

@@ -63,6 +63,10 @@ def test_cores_partition_the_scan_in_scan_order(tmp_path: Path) -> None:
         assert np.all(grid.tile_keys(core.cloud.xyz) == tile)
         expected = cloud[core.indices]
         assert core.cloud.equals(expected)  # every column comes back exactly
+        copied = core.copied()  # contiguous private copies, the same points
+        assert copied.cloud.equals(expected) and copied.cloud.xyz.flags.c_contiguous
+        np.testing.assert_array_equal(copied.indices, core.indices)
+        assert copied.cloud.xyz.flags.writeable and copied.indices.flags.c_contiguous
         seen.append(core.indices)
     np.testing.assert_array_equal(np.sort(np.concatenate(seen)), np.arange(5_000))
     assert store.read_core((99, 99)).n_points == 0

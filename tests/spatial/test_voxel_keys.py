@@ -75,3 +75,30 @@ def test_cells_and_keys_of_a_wrong_shape_are_named() -> None:
     # a strided view (a slice of wider cells) packs like its copy
     wide = np.arange(24, dtype=np.int64).reshape(4, 6)
     np.testing.assert_array_equal(pack_keys(wide[:, ::2]), pack_keys(wide[:, ::2].copy()))
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    x_span=st.integers(0, 2**31 - 1),
+    y_span=st.integers(0, 2**31 - 1),
+    n=st.integers(0, 5000),
+    seed=st.integers(0, 2**32 - 1),
+    threads=st.sampled_from([1, 3]),
+)
+def test_two_part_codes_sort_as_numbers(
+    x_span: int, y_span: int, n: int, seed: int, threads: int
+) -> None:
+    """Codes ``(ix << 31) | iy`` (the cylinders' cells) sorted with ``bits=31``: numpy's
+    stable order, and the runs of equal codes."""
+    rng = np.random.default_rng(seed)
+    codes = (rng.integers(0, x_span + 1, n) << 31) | rng.integers(0, y_span + 1, n)
+    if n > 10:
+        codes[n // 2 :] = codes[: n - n // 2]  # repeated codes
+    with thread_limit(threads):
+        order = key_order(codes, bits=31)
+        starts = key_runs(codes, order) if n else np.zeros(1, np.int64)
+    np.testing.assert_array_equal(order, np.argsort(codes, kind="stable"))
+    ordered = codes[order]
+    change = np.flatnonzero(ordered[1:] != ordered[:-1]) + 1
+    expected = np.concatenate(([0], change, [n])) if n else np.zeros(1)
+    np.testing.assert_array_equal(starts, expected)

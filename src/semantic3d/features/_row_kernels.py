@@ -15,6 +15,7 @@ from numpy.typing import NDArray
 
 __all__ = [
     "copy_rows",
+    "distinct_values",
     "exact_rows",
     "leading_columns",
     "put_rows",
@@ -157,3 +158,54 @@ def put_values(
     """``out[offset : offset + rows.size] = source[rows]`` for 1-D arrays."""
     for i in numba.prange(rows.size):
         out[offset + i] = source[rows[i]]
+
+
+_BLOCK_ROWS = 1 << 15  # the least rows a thread counts on its own
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def distinct_values(
+    values: NDArray[np.int64],
+) -> tuple[NDArray[np.int64], NDArray[np.int64], bool]:  # pragma: no cover - compiled
+    """``np.unique(values, return_inverse=True)`` of non-negative integers, by marking a
+    table as large as the largest value (linear time), and whether ``values`` already
+    are their distinct values in order (strictly increasing). Every pass on every
+    thread: marks, blocks of the table counted apart and numbered from the counts
+    summed before them, then each value's rank."""
+    n = values.size
+    largest = 0
+    for i in numba.prange(n):
+        largest = max(largest, values[i])
+    present = np.zeros(largest + 1, np.bool_)
+    for i in numba.prange(n):
+        present[values[i]] = True  # every thread writes the same value
+    size = largest + 1
+    n_blocks = max(1, size // _BLOCK_ROWS)
+    per_block = -(-size // n_blocks)
+    counts = np.zeros(n_blocks, np.int64)
+    for block in numba.prange(n_blocks):
+        count = 0
+        for j in range(block * per_block, min(size, (block + 1) * per_block)):
+            count += present[j]
+        counts[block] = count
+    firsts = np.empty(n_blocks, np.int64)
+    running = 0
+    for block in range(n_blocks):
+        firsts[block] = running
+        running += counts[block]
+    distinct = np.empty(running, np.int64)
+    rank = np.empty(size, np.int64)
+    for block in numba.prange(n_blocks):
+        at = firsts[block]
+        for j in range(block * per_block, min(size, (block + 1) * per_block)):
+            if present[j]:
+                distinct[at] = j
+                rank[j] = at
+                at += 1
+    inverse = np.empty(n, np.int64)
+    moved = 0
+    for i in numba.prange(n):
+        inverse[i] = rank[values[i]]
+        if inverse[i] != i:
+            moved += 1
+    return distinct, inverse, running == n and moved == 0

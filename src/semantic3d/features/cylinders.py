@@ -30,6 +30,7 @@ from semantic3d.core.atomic import row_workers, take_row_block
 from semantic3d.core.errors import ShapeError
 from semantic3d.features._row_kernels import take_rows
 from semantic3d.features.names import CYLINDER_FEATURES
+from semantic3d.spatial.voxels import key_order, key_runs
 
 N_CYLINDER_COLUMNS = len(CYLINDER_FEATURES)
 
@@ -73,17 +74,17 @@ def compute_cylinder_features(
         out[:] = 0.0
         return out
     cell = radius_m * _CELL_MARGIN
-    origin = points[:, :2].min(axis=0) - cell
+    origin = _xy_low(points) - cell
     codes = _cell_codes(points, origin, cell)
-    order = np.argsort(codes, kind="stable")
-    sorted_codes = codes[order]
-    change = np.flatnonzero(sorted_codes[1:] != sorted_codes[:-1]) + 1
-    starts = np.concatenate(([0], change, [sorted_codes.size])).astype(np.int64)
+    # the points by cell, and where each cell's run starts: on every thread (numpy's
+    # argsort and run search are passes over the level on one thread)
+    order = key_order(codes, bits=_SHIFT)
+    starts = key_runs(codes, order)
     # A C-contiguous destination only: another layout would be another compilation.
     block = out if out.flags.c_contiguous else np.empty(out.shape, np.float32)
     _cylinder_kernel(
         take_rows(points, order),
-        sorted_codes[starts[:-1]],
+        codes[order[starts[:-1]]],
         starts,
         queries,
         origin,
@@ -99,6 +100,20 @@ def compute_cylinder_features(
 
 _SHIFT = 31
 _QUERY_BLOCK = 256  # queries per piece of work handed to a thread
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _xy_low(points: NDArray[np.float64]) -> NDArray[np.float64]:  # pragma: no cover - compiled
+    """``points[:, :2].min(axis=0)`` reduced on every thread (numpy's is one pass on one)."""
+    x_low = np.inf
+    y_low = np.inf
+    for row in numba.prange(points.shape[0]):
+        x_low = min(x_low, points[row, 0])
+        y_low = min(y_low, points[row, 1])
+    low = np.empty(2, np.float64)
+    low[0] = x_low
+    low[1] = y_low
+    return low
 
 
 # Hand-written: numpy's floor, casts and shifts are passes over the level on one thread;

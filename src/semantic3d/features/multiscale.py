@@ -18,7 +18,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from semantic3d.core.errors import ShapeError
 from semantic3d.core.pointcloud import PointCloud
-from semantic3d.features._row_kernels import copy_rows, put_rows, take_rows
+from semantic3d.features._row_kernels import copy_rows, distinct_values, put_rows, take_rows
 from semantic3d.features.attributes import compute_attribute_features
 from semantic3d.features.config import FeatureConfig
 from semantic3d.features.covariance import (
@@ -261,8 +261,8 @@ def fill_level_columns(
     ``compute(voxels, out)`` fills ``out`` with the features of distinct, sorted ``voxels``;
     it runs once per voxel, and its rows are copied to every row of that voxel.
     """
-    needed, inverse = distinct_voxels(voxel_of_row)
-    if needed.size == voxel_of_row.size and np.array_equal(needed, voxel_of_row):
+    needed, inverse, in_order = _distinct(voxel_of_row)
+    if in_order:
         # one row per voxel, in voxel order (level 0 in voxel mode): fill in place
         compute(needed, columns)
         return
@@ -275,11 +275,17 @@ def distinct_voxels(
     voxel_of_row: NDArray[np.int64],
 ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
     """``np.unique(voxel_of_row, return_inverse=True)`` for non-negative voxel indices,
-    by marking a table as large as the largest index instead of sorting (linear time)."""
+    by marking a table as large as the largest index instead of sorting (linear time, on
+    every thread)."""
+    needed, inverse, _ = _distinct(voxel_of_row)
+    return needed, inverse
+
+
+def _distinct(
+    voxel_of_row: NDArray[np.int64],
+) -> tuple[NDArray[np.int64], NDArray[np.int64], bool]:
+    """:func:`distinct_voxels` and whether the rows already are their voxels in order."""
     if voxel_of_row.size == 0:
-        return np.empty(0, np.int64), np.empty(0, np.int64)
-    present = np.zeros(int(voxel_of_row.max()) + 1, np.bool_)
-    present[voxel_of_row] = True
-    needed = np.flatnonzero(present)
-    rank = np.cumsum(present, dtype=np.int64) - 1
-    return needed.astype(np.int64, copy=False), rank[voxel_of_row]
+        return np.empty(0, np.int64), np.empty(0, np.int64), True
+    needed, inverse, in_order = distinct_values(np.ascontiguousarray(voxel_of_row, dtype=np.int64))
+    return needed, inverse, bool(in_order)

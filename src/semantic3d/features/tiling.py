@@ -380,17 +380,20 @@ class TiledScan:
             select: sorted unique global indices of the points to describe (default all).
         """
         points = self._load_points(tile)
-        keep = (
-            np.ones(points.n_points, bool)
-            if select is None
-            else np.isin(points.indices, select, assume_unique=True)
-        )
-        if not keep.any():
-            return None
-        labels = points.cloud.labels[keep] if points.cloud.labels is not None else None
-        xyz = points.cloud.xyz[keep]
-        table = self._tile_table(tile, xyz, np.flatnonzero(keep))
-        return TileFeatures(tile, points.indices[keep], table, labels, xyz)
+        if select is None:  # every point: one copy of the columns, on every thread
+            if points.n_points == 0:
+                return None
+            points = points.copied()
+            labels, xyz, indices = points.cloud.labels, points.cloud.xyz, points.indices
+            local = None
+        else:
+            keep = np.isin(points.indices, select, assume_unique=True)
+            if not keep.any():
+                return None
+            labels = points.cloud.labels[keep] if points.cloud.labels is not None else None
+            xyz, indices, local = points.cloud.xyz[keep], points.indices[keep], np.flatnonzero(keep)
+        table = self._tile_table(tile, xyz, local)
+        return TileFeatures(tile, indices, table, labels, xyz)
 
     def share(self) -> None:
         """Compute what every tile shares once and save it in the scratch folder.
@@ -503,8 +506,10 @@ class TiledScan:
                 self._whole, self._first_halo = pickle.load(stream)
 
     def _tile_table(
-        self, tile: Tile, xyz: NDArray[np.float64], local: NDArray[np.int64]
+        self, tile: Tile, xyz: NDArray[np.float64], local: NDArray[np.int64] | None
     ) -> FeatureTable:
+        """Rows of the tile's points ``local`` (its points' positions in the tile; None:
+        every point), at ``xyz``."""
         assert self.origin is not None
         config = self.config
         width = len(config.level_feature_names)
@@ -519,7 +524,8 @@ class TiledScan:
                 config.feature_names, values, np.arange(queries.shape[0], dtype=np.int64)
             )
         levels = [self._level(tile, number) for number in range(config.n_levels)]  # held
-        voxels, point_row = distinct_voxels(self._point_voxels(tile)[local])
+        point_voxels = self._point_voxels(tile)
+        voxels, point_row = distinct_voxels(point_voxels if local is None else point_voxels[local])
         values = np.empty((voxels.size, config.n_features), np.float32)
         # level 0 (one row per voxel, in row order) also gives every row its k-NN
         neighbour_keys = np.empty((voxels.size, config.k_neighbours), np.int64)

@@ -267,6 +267,27 @@ def xyz_label_rows(
         out[i, 3] = labels[i] if with_labels else 0.0
 
 
+@nb.njit(cache=True, nogil=True, parallel=True)
+def copy_columns(
+    xyz: np.ndarray,
+    labels: np.ndarray,
+    index: np.ndarray,
+    out_xyz: np.ndarray,
+    out_labels: np.ndarray,
+    out_index: np.ndarray,
+) -> None:  # pragma: no cover - compiled
+    """Contiguous copies of the strided columns of packed records, on every thread
+    (``labels`` empty: no labels to copy)."""
+    with_labels = labels.shape[0] > 0
+    for i in nb.prange(xyz.shape[0]):
+        out_xyz[i, 0] = xyz[i, 0]
+        out_xyz[i, 1] = xyz[i, 1]
+        out_xyz[i, 2] = xyz[i, 2]
+        out_index[i] = index[i]
+        if with_labels:
+            out_labels[i] = labels[i]
+
+
 @nb.njit(cache=True, nogil=True)
 def select_in_box(
     xyz: np.ndarray,

@@ -33,7 +33,14 @@ from numpy.typing import NDArray
 
 from semantic3d.core.errors import ShapeError
 
-__all__ = ["MAX_CELL_DEPTH", "Bounds", "TileGrid", "TileKey", "quadtree_leaves"]
+__all__ = [
+    "MAX_CELL_DEPTH",
+    "Bounds",
+    "TileGrid",
+    "TileKey",
+    "quadtree_leaf_table",
+    "quadtree_leaves",
+]
 
 TileKey = tuple[int, int]
 """``(ix, iy)`` index of a tile."""
@@ -213,14 +220,31 @@ def quadtree_leaves(codes: NDArray[np.integer], *, depth: int, max_count: int) -
     """
     if not 0 <= depth <= MAX_CELL_DEPTH:
         raise ShapeError(f"depth: expected 0..{MAX_CELL_DEPTH}, found {depth}")
-    if max_count < 1:
-        raise ShapeError(f"max_count: expected a positive count, found {max_count}")
     n_codes = 1 << (2 * depth)
     codes = np.asarray(codes)
     if codes.size and (int(codes.min()) < 0 or int(codes.max()) >= n_codes):
         raise ShapeError(f"codes: expected values in 0..{n_codes - 1} for depth {depth}")
+    leaf = quadtree_leaf_table(
+        np.bincount(codes, minlength=n_codes), depth=depth, max_count=max_count
+    )
+    leaves: NDArray[np.int64] = leaf[codes]
+    return leaves
+
+
+def quadtree_leaf_table(
+    counts: NDArray[np.integer], *, depth: int, max_count: int
+) -> NDArray[np.int64]:
+    """:func:`quadtree_leaves` from the points per code (``(4**depth,)``): the first code
+    of every code's leaf square."""
+    if not 0 <= depth <= MAX_CELL_DEPTH:
+        raise ShapeError(f"depth: expected 0..{MAX_CELL_DEPTH}, found {depth}")
+    if max_count < 1:
+        raise ShapeError(f"max_count: expected a positive count, found {max_count}")
+    n_codes = 1 << (2 * depth)
+    if counts.shape != (n_codes,):
+        raise ShapeError(f"counts: expected ({n_codes},) for depth {depth}, found {counts.shape}")
     before = np.zeros(n_codes + 1, np.int64)  # points with a smaller code
-    np.cumsum(np.bincount(codes, minlength=n_codes), out=before[1:])
+    np.cumsum(counts, out=before[1:])
     leaf = np.empty(n_codes, np.int64)
     squares = [(0, n_codes)]  # (first code, codes) of the squares still to place
     while squares:
@@ -230,4 +254,4 @@ def quadtree_leaves(codes: NDArray[np.integer], *, depth: int, max_count: int) -
             squares.extend((first + k * quarter, quarter) for k in range(4))
         else:
             leaf[first : first + size] = first
-    return leaf[codes]
+    return leaf

@@ -36,6 +36,7 @@ _PARALLEL_SPLIT_ROWS = 1 << 14
 """A node of a level with fewer nodes than threads is split on every thread from this
 many rows on (fewer: each node on one thread, the nodes of a level in parallel)."""
 _PIVOT_SAMPLE = 2048  # rows of a node sampled for its parallel split's pivot
+_SUBTREES_PER_THREAD = 4  # subtrees a thread builds whole (below the top levels), on average
 
 
 class KdTree:
@@ -179,8 +180,7 @@ def _build(points: NDArray[np.float32], depth: int, n_threads: int) -> tuple[Any
     """
     n = points.shape[0]
     n_nodes = (1 << (depth + 1)) - 1
-    ordered = points.copy()
-    order = np.arange(n, dtype=np.int64)
+    ordered, order = _numbered_copy(points)
     bounds = np.zeros((n_nodes, 2), np.int64)
     boxes = np.zeros((n_nodes, 6), np.float64)
     axes = np.zeros(n_nodes, np.int64)
@@ -193,26 +193,75 @@ def _build(points: NDArray[np.float32], depth: int, n_threads: int) -> tuple[Any
             if level < depth:
                 axes[node] = _split_on_threads(ordered, order, bounds, boxes[node], node, n_threads)
         level += 1
-    _build_levels(ordered, order, bounds, boxes, axes, level, depth)
+    _build_levels(ordered, order, bounds, boxes, axes, level, depth, n_threads)
     return ordered, order, bounds, boxes, axes
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
+def _numbered_copy(points: Any) -> tuple[Any, Any]:  # pragma: no cover - compiled
+    """A copy of the points and their indices, written on every thread (numpy's copy and
+    ``arange`` are passes on one thread before the first split)."""
+    n = points.shape[0]
+    ordered = np.empty((n, 3), points.dtype)
+    order = np.empty(n, np.int64)
+    for i in numba.prange(n):
+        ordered[i, 0] = points[i, 0]
+        ordered[i, 1] = points[i, 1]
+        ordered[i, 2] = points[i, 2]
+        order[i] = i
+    return ordered, order
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
 def _build_levels(
-    ordered: Any, order: Any, bounds: Any, boxes: Any, axes: Any, first_level: int, depth: int
+    ordered: Any,
+    order: Any,
+    bounds: Any,
+    boxes: Any,
+    axes: Any,
+    first_level: int,
+    depth: int,
+    n_threads: int,
 ) -> None:  # pragma: no cover - compiled
-    """Levels ``first_level..depth`` of :func:`_build`: the nodes of a level in parallel,
-    each split at its median row on one thread."""
-    for level in range(first_level, depth + 1):
+    """Levels ``first_level..depth`` of :func:`_build`, each node split at its median row
+    on one thread: level by level (a level's nodes in parallel) while a level has fewer
+    than ``_SUBTREES_PER_THREAD`` nodes a thread, then each node of that level's whole
+    subtree on one thread, subtrees taken as threads come free (one wait for the lot
+    instead of one a level, and a slow subtree does not hold a level's other threads)."""
+    level = first_level
+    while level <= depth and (1 << level) < _SUBTREES_PER_THREAD * n_threads:
         first = (1 << level) - 1
-        count = 1 << level
-        for j in numba.prange(count):
-            node = first + j
-            box = np.empty(6, np.float64)
-            _box(ordered, bounds[node, 0], bounds[node, 1], box)
-            boxes[node] = box
-            if level < depth:
-                axes[node] = _split(ordered, order, bounds, box, node)
+        for j in numba.prange(1 << level):
+            _place_node(ordered, order, bounds, boxes, axes, first + j, level < depth)
+        level += 1
+    if level > depth:
+        return
+    first = (1 << level) - 1
+    count = 1 << level
+    taken = np.zeros(1, np.int64)
+    for _ in numba.prange(row_workers(n_threads, count, 1)):
+        while True:
+            start, stop = take_row_block(taken, count, 1)
+            if start >= stop:
+                break
+            root = first + start
+            for below in range(depth - level + 1):  # the subtree level by level
+                first_below = ((root + 1) << below) - 1
+                for j in range(1 << below):
+                    _place_node(
+                        ordered, order, bounds, boxes, axes, first_below + j, level + below < depth
+                    )
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _place_node(
+    ordered: Any, order: Any, bounds: Any, boxes: Any, axes: Any, node: int, split: bool
+) -> None:  # pragma: no cover - compiled
+    """Node ``node``'s box and, when ``split``, its split at its median row."""
+    box = boxes[node]
+    _box(ordered, bounds[node, 0], bounds[node, 1], box)
+    if split:
+        axes[node] = _split(ordered, order, bounds, box, node)
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)

@@ -135,6 +135,27 @@ class TilePoints:
         )
         return cls(cloud, column("index"))
 
+    def copied(self) -> TilePoints:
+        """Private contiguous copies of the coordinates, labels and indices (intensity and
+        colours stay as they are), copied on every thread: numpy copies a strided column
+        on one thread."""
+        from semantic3d.spatial._kernels import copy_columns
+
+        cloud = self.cloud
+        n = cloud.n_points
+        xyz = np.empty((n, 3), np.float64)
+        labels = None if cloud.labels is None else np.empty(n, np.uint8)
+        indices = np.empty(n, np.int64)
+        copy_columns(
+            cloud.xyz,
+            np.empty(0, np.uint8) if cloud.labels is None else cloud.labels,
+            self.indices,
+            xyz,
+            np.empty(0, np.uint8) if labels is None else labels,
+            indices,
+        )
+        return TilePoints(PointCloud(xyz, cloud.intensity, cloud.rgb, labels), indices)
+
 
 def xyz_label_rows(points: TilePoints) -> NDArray[np.float64]:
     """``(n, 4)`` float64 rows ``x y z label`` of ``points`` (label 0 without labels).

@@ -98,17 +98,21 @@ def pack_keys(cells: NDArray[np.int64]) -> NDArray[np.int64]:
     return keys
 
 
-def key_order(keys: NDArray[np.int64]) -> NDArray[np.int64]:
+def key_order(keys: NDArray[np.int64], *, bits: int = CELL_BITS) -> NDArray[np.int64]:
     """The order that sorts packed keys, equal keys in their order: what
     ``np.argsort(keys, kind="stable")`` gives, on every thread of the budget (a radix sort
     of the bits the keys span; hand-written because numpy sorts on one thread, and
-    building a scan's voxel pyramid is mostly this sort)."""
+    building a scan's voxel pyramid is mostly this sort).
+
+    Keys are three non-negative parts of ``bits`` bits each, the first in the highest
+    bits (:func:`packed_keys`; any non-negative key whose first part is below
+    ``2**(63 - 2 * bits)``, e.g. ``(ix << bits) | iy``, is sorted as a number)."""
     import numba
 
     from semantic3d.spatial._kernels import key_order as radix_order
 
     order: NDArray[np.int64] = radix_order(
-        np.ascontiguousarray(keys, dtype=np.int64), CELL_BITS, numba.get_num_threads()
+        np.ascontiguousarray(keys, dtype=np.int64), int(bits), numba.get_num_threads()
     )
     return order
 

@@ -309,3 +309,79 @@ def test_a_large_group_is_cut_in_quadtree_squares_each_labelled_alone() -> None:
         label_rows_by_group(
             proba, None, tile, potts_weight=2.0, neighbours=lists, row_cell=cell[:3]
         )
+
+
+def _split_groups_reference(
+    inverse: np.ndarray, n_groups: int, cells: np.ndarray, max_rows: int
+) -> tuple[np.ndarray, int]:
+    """The split written with numpy, group by group (the definition)."""
+    from semantic3d.baselines.covariance.context import GRAPH_CELL_DEPTH
+    from semantic3d.spatial.grid import quadtree_leaves
+
+    split = inverse.copy()
+    for group in np.flatnonzero(np.bincount(inverse, minlength=n_groups) > max_rows).tolist():
+        rows = np.flatnonzero(inverse == group)
+        leaves = quadtree_leaves(cells[rows], depth=GRAPH_CELL_DEPTH, max_count=max_rows)
+        present = np.zeros(1 << (2 * GRAPH_CELL_DEPTH), np.bool_)
+        present[leaves] = True
+        rank = (np.cumsum(present) - 1)[leaves]
+        split[rows] = np.where(rank == 0, group, n_groups + rank - 1)
+        n_groups += int(np.count_nonzero(present)) - 1
+    return split, n_groups
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    n=st.integers(1, 70_000),
+    n_groups=st.integers(1, 6),
+    max_rows=st.integers(1, 5000),
+    spread=st.integers(0, 12),
+    seed=st.integers(0, 2**16),
+)
+def test_groups_split_and_ordered_on_threads_equal_their_numpy_definition(
+    n: int, n_groups: int, max_rows: int, spread: int, seed: int
+) -> None:
+    """The compiled split (every large group's squares counted in one pass on every
+    thread) and the compiled grouping (a counting sort) give the numpy definitions: the
+    same numbering of squares, the stable order of rows, the groups' bounds and each
+    row's place in its group, on any number of threads."""
+    from semantic3d.baselines.covariance._context_kernels import group_order
+    from semantic3d.baselines.covariance.context import GRAPH_CELL_DEPTH, _split_groups
+
+    rng = np.random.default_rng(seed)
+    inverse = rng.integers(0, n_groups, n)
+    if seed % 3 == 0:  # a tile's rows: one group
+        inverse[:] = 0
+    # squares crowding into a corner (as near the scanner), up to every square
+    cells = np.minimum(
+        rng.geometric(1 / (1 + 2**spread), n) - 1, (1 << (2 * GRAPH_CELL_DEPTH)) - 1
+    ).astype(np.uint16)
+    split, count = _split_groups(inverse, n_groups, cells, max_rows)
+    expected, expected_count = _split_groups_reference(inverse, n_groups, cells, max_rows)
+    np.testing.assert_array_equal(split, expected)
+    assert count == expected_count
+    for threads in (1, 3):
+        order, bounds, local = group_order(split, count, threads)
+        np.testing.assert_array_equal(order, np.argsort(split, kind="stable"))
+        np.testing.assert_array_equal(bounds, np.searchsorted(split[order], np.arange(count + 1)))
+        np.testing.assert_array_equal(local[order], np.arange(n) - bounds[split[order]])
+
+
+def test_bad_squares_and_neighbour_rows_are_refused_in_one_line() -> None:
+    from semantic3d.baselines.covariance.context import _checked_lists, _split_groups
+
+    with pytest.raises(ShapeError, match=r"row_cell: expected squares in 0\.\.4095"):
+        _split_groups(np.zeros(5, np.int64), 1, np.full(5, 4096, np.uint16), 2)
+    with pytest.raises(ShapeError, match=r"row_cell: expected squares in 0\.\.4095"):
+        _split_groups(np.zeros(5, np.int64), 1, np.full(5, -1, np.int64), 2)
+    lists = np.tile(np.arange(3), (4, 1))
+    np.testing.assert_array_equal(_checked_lists(lists, 4, 2), lists)
+    lists[3, 1] = 4
+    with pytest.raises(ShapeError, match=r"neighbours: expected rows in -1\.\.3"):
+        _checked_lists(lists, 4, 2)
+    lists[3, 1] = -2
+    with pytest.raises(ShapeError, match=r"neighbours: expected rows in -1\.\.3"):
+        _checked_lists(lists, 4, 2)
+    lists[3, 2] = 9  # past the columns the graph uses: not checked
+    lists[3, 1] = 0
+    np.testing.assert_array_equal(_checked_lists(lists, 4, 1), lists)

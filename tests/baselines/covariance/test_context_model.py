@@ -235,3 +235,36 @@ def test_a_dense_tile_cut_in_squares_gives_the_same_labels_however_it_is_read(
     )
     assert tiled.tiled
     np.testing.assert_array_equal(read_labels(tiled.labels_path), squares)
+
+
+def test_rows_take_the_tile_and_square_of_their_last_point(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """Rows placed on every thread get what numpy's assignment gives (the last of a row's
+    points decides), also where a row's points disagree."""
+    from semantic3d.baselines.covariance.model import _PositionFile
+
+    rng = np.random.default_rng(3)
+    n_points, n_rows = 50_000, 4_000
+    tiles = rng.integers(0, 5, n_points).astype(np.int64)
+    cells = rng.integers(0, 4096, n_points).astype(np.uint16)
+    (tmp_path / "xyz.f32").write_bytes(np.zeros((n_points, 3), np.float32).tobytes())
+    (tmp_path / "tiles.i64").write_bytes(tiles.tobytes())
+    (tmp_path / "cells.u16").write_bytes(cells.tobytes())
+    positions = _PositionFile(tmp_path, None)  # type: ignore[arg-type]
+    positions._complete = True
+    picked = np.sort(rng.choice(n_points, 30_000, replace=False))
+    point_row = rng.integers(0, n_rows, picked.size)
+    for agree in (False, True):
+        if agree:  # every row's points share its tile and square
+            source = rng.integers(0, n_points, n_rows)
+            tiles[picked] = tiles[source[point_row]]
+            cells[picked] = cells[source[point_row]]
+            (tmp_path / "tiles.i64").write_bytes(tiles.tobytes())
+            (tmp_path / "cells.u16").write_bytes(cells.tobytes())
+            positions._files = None
+        row_tile, row_cell = positions.row_places(picked, point_row, n_rows)
+        expected_tile = np.zeros(n_rows, np.int64)
+        expected_tile[point_row] = tiles[picked]
+        expected_cell = np.zeros(n_rows, np.uint16)
+        expected_cell[point_row] = cells[picked]
+        np.testing.assert_array_equal(row_tile, expected_tile)
+        np.testing.assert_array_equal(row_cell, expected_cell)

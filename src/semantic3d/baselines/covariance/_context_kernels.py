@@ -187,3 +187,139 @@ def count_cut_edges(
         if labels[first[e]] != labels[second[e]]:
             count += 1
     return count
+
+
+_GROUP_BLOCK_ROWS = 1 << 15  # the least rows a thread counts on its own
+
+
+_GROUP_COUNTS = 1 << 21  # the most counts the blocks hold together
+
+
+@nb.njit(cache=True, nogil=True)
+def _row_blocks(n: int, n_threads: int, width: int) -> tuple[int, int]:  # pragma: no cover
+    """Blocks of consecutive rows counted apart (each with ``width`` counts): their number
+    and rows per block."""
+    n_blocks = max(1, min(4 * n_threads, n // _GROUP_BLOCK_ROWS, _GROUP_COUNTS // width))
+    return n_blocks, -(-n // n_blocks)
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def large_group_codes(
+    inverse: np.ndarray,
+    slot_of_group: np.ndarray,
+    n_large: int,
+    codes: np.ndarray,
+    n_codes: int,
+    n_threads: int,
+) -> np.ndarray:  # pragma: no cover - compiled
+    """``(n_large, n_codes)`` rows per code of the groups with a slot (``slot_of_group[g]``
+    >= 0), counted on every thread in blocks of rows."""
+    n = inverse.shape[0]
+    n_blocks, per_block = _row_blocks(n, n_threads, max(1, n_large * n_codes))
+    partial = np.zeros((n_blocks, n_large, n_codes), np.int64)
+    for block in nb.prange(n_blocks):
+        for i in range(block * per_block, min(n, (block + 1) * per_block)):
+            slot = slot_of_group[inverse[i]]
+            if slot >= 0:
+                partial[block, slot, codes[i]] += 1
+    counts = np.zeros((n_large, n_codes), np.int64)
+    for block in range(n_blocks):
+        counts += partial[block]
+    return counts
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def split_rows(
+    inverse: np.ndarray, slot_of_group: np.ndarray, codes: np.ndarray, code_group: np.ndarray
+) -> np.ndarray:  # pragma: no cover - compiled
+    """Each row's group after the split: ``code_group[slot, code]`` for rows of a group
+    with a slot, its own group otherwise."""
+    out = np.empty(inverse.shape[0], np.int64)
+    for i in nb.prange(inverse.shape[0]):
+        slot = slot_of_group[inverse[i]]
+        out[i] = inverse[i] if slot < 0 else code_group[slot, codes[i]]
+    return out
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def group_order(
+    inverse: np.ndarray, n_groups: int, n_threads: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+    """The rows grouped: ``np.argsort(inverse, kind="stable")``, each group's bounds in it
+    (``n_groups + 1``) and every row's place within its group. A counting sort on every
+    thread (blocks of rows counted apart, placed from the counts summed before them): the
+    same whatever the threads."""
+    n = inverse.shape[0]
+    n_blocks, per_block = _row_blocks(n, n_threads, max(1, n_groups))
+    counts = np.zeros((n_blocks, n_groups), np.int64)
+    for block in nb.prange(n_blocks):
+        for i in range(block * per_block, min(n, (block + 1) * per_block)):
+            counts[block, inverse[i]] += 1
+    bounds = np.zeros(n_groups + 1, np.int64)
+    starts = np.empty((n_blocks, n_groups), np.int64)
+    running = 0
+    for group in range(n_groups):
+        bounds[group] = running
+        for block in range(n_blocks):
+            starts[block, group] = running
+            running += counts[block, group]
+    bounds[n_groups] = running
+    order = np.empty(n, np.int64)
+    local = np.empty(n, np.int64)
+    for block in nb.prange(n_blocks):
+        nexts = starts[block].copy()
+        for i in range(block * per_block, min(n, (block + 1) * per_block)):
+            group = inverse[i]
+            at = nexts[group]
+            nexts[group] = at + 1
+            order[at] = i
+            local[i] = at - bounds[group]
+    return order, bounds, local
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def column_range(lists: np.ndarray, width: int) -> tuple[Any, Any]:  # pragma: no cover
+    """Smallest and largest entry of the first ``width`` columns, reduced on every thread."""
+    low: Any = np.iinfo(np.int64).max
+    high: Any = np.iinfo(np.int64).min
+    for i in nb.prange(lists.shape[0]):
+        for column in range(width):
+            value = np.int64(lists[i, column])
+            low = min(low, value)
+            high = max(high, value)
+    return low, high
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def all_equal(values: np.ndarray) -> bool:  # pragma: no cover - compiled
+    """Whether every value equals the first (checked on every thread)."""
+    first = values[0]
+    differ = 0
+    for i in nb.prange(values.shape[0]):
+        if values[i] != first:
+            differ += 1
+    return differ == 0
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def row_places(
+    tiles: np.ndarray,
+    cells: np.ndarray,
+    point_indices: np.ndarray,
+    point_row: np.ndarray,
+    row_tile: np.ndarray,
+    row_cell: np.ndarray,
+) -> bool:  # pragma: no cover - compiled
+    """``row_tile[point_row] = tiles[point_indices]`` and the same for cells, on every
+    thread; True when every row's points agree (the result is then numpy's, whichever
+    point wrote last), False when some row's do not (numpy's last-wins then decides)."""
+    m = point_indices.shape[0]
+    for i in nb.prange(m):
+        row_tile[point_row[i]] = tiles[point_indices[i]]
+        row_cell[point_row[i]] = cells[point_indices[i]]
+    differ = 0
+    for i in nb.prange(m):
+        row = point_row[i]
+        if row_tile[row] != tiles[point_indices[i]] or row_cell[row] != cells[point_indices[i]]:
+            differ += 1
+    return differ == 0

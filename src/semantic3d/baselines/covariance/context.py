@@ -25,8 +25,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from semantic3d.core.errors import ConfigError, ShapeError
-from semantic3d.core.threads import map_in_threads, serial_section, take_free_threads
-from semantic3d.spatial.grid import quadtree_leaves
+from semantic3d.core.threads import (
+    map_in_threads,
+    serial_section,
+    take_free_threads,
+    thread_budget,
+)
+from semantic3d.spatial.grid import quadtree_leaf_table
 
 __all__ = [
     "GRAPH_CELL_DEPTH",
@@ -273,10 +278,14 @@ def _checked_lists(
     """``neighbours`` as C-ordered int64, its first ``n_neighbours + 1`` columns checked."""
     if neighbours.shape[0] != n_rows:
         raise ShapeError(f"neighbours: expected {n_rows} rows, found {neighbours.shape[0]}")
+    from semantic3d.baselines.covariance._context_kernels import column_range
+
     lists = np.ascontiguousarray(neighbours, dtype=np.int64)
-    used = lists[:, : n_neighbours + 1]
-    if used.size and (used.max() >= n_rows or used.min() < -1):
-        raise ShapeError(f"neighbours: expected rows in -1..{n_rows - 1}")
+    width = min(n_neighbours + 1, lists.shape[1])
+    if lists.shape[0] and width:
+        low, high = column_range(lists, width)
+        if high >= n_rows or low < -1:
+            raise ShapeError(f"neighbours: expected rows in -1..{n_rows - 1}")
     return lists
 
 
@@ -284,7 +293,11 @@ def _dense_groups(row_group: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDAr
     """``np.unique(row_group, return_inverse=True)`` in linear time where it can: ids that
     come in long runs (rows gathered tile by tile) by their runs, small non-negative ids by
     marking a table; sorting only otherwise."""
+    from semantic3d.baselines.covariance._context_kernels import all_equal
+
     n = row_group.size
+    if n and all_equal(row_group):  # one group (a tile's rows): no pass to number them
+        return row_group[:1].copy(), np.zeros(n, np.int64)
     change = np.flatnonzero(row_group[1:] != row_group[:-1]) + 1
     if change.size < n // 16:
         starts = np.concatenate(([0], change))
@@ -351,17 +364,16 @@ def label_rows_by_group(
                 max_sweeps=max_sweeps,
                 neighbours=neighbours,
             )
+    from semantic3d.baselines.covariance._context_kernels import group_order, grouped_edges
+
     result = np.empty(n, np.int64)
-    order = np.argsort(inverse, kind="stable")
-    bounds = np.searchsorted(inverse[order], np.arange(n_groups + 1))
+    # the rows group by group (each ascending), the groups' bounds, each row's place in
+    # its group: one counting sort on the task's threads
+    order, bounds, local = group_order(inverse, n_groups, thread_budget())
     edges = edge_bounds = None
     if lists_suffice(neighbours, n_neighbours):
         assert neighbours is not None
-        from semantic3d.baselines.covariance._context_kernels import grouped_edges
-
         # each group's own edges, in their order, numbered within the group
-        local = np.empty(n, np.int64)
-        local[order] = np.arange(n) - np.repeat(bounds[:-1], np.diff(bounds))
         lists = _checked_lists(neighbours, n, n_neighbours)
         edges, edge_bounds = grouped_edges(lists, n_neighbours + 1, inverse, local, n_groups)
 
@@ -405,18 +417,34 @@ def _split_groups(
     its quadrants, down to the squares of :data:`GRAPH_CELL_DEPTH`. The first square keeps
     the group's number, the others are numbered after the groups. Depends only on each
     group's rows and cells."""
+    from semantic3d.baselines.covariance._context_kernels import (
+        column_range,
+        large_group_codes,
+        split_rows,
+    )
+
     sizes = np.bincount(inverse, minlength=n_groups)
     large = np.flatnonzero(sizes > max_rows)
     if not large.size:
         return inverse, n_groups
-    cells = np.asarray(row_cell)
-    split = inverse.copy()
-    for group in large.tolist():
-        rows = np.flatnonzero(inverse == group)
-        leaves = quadtree_leaves(cells[rows], depth=GRAPH_CELL_DEPTH, max_count=max_rows)
-        present = np.zeros(1 << (2 * GRAPH_CELL_DEPTH), np.bool_)  # by code: no sort
-        present[leaves] = True
-        rank = (np.cumsum(present) - 1)[leaves]
-        split[rows] = np.where(rank == 0, group, n_groups + rank - 1)
+    n_codes = 1 << (2 * GRAPH_CELL_DEPTH)
+    cells = np.ascontiguousarray(row_cell)
+    if cells.dtype != np.uint16:  # the squares' type; any other integers as int64
+        cells = cells.astype(np.int64)
+    if cells.size:
+        low, high = column_range(cells.reshape(-1, 1), 1)
+        if low < 0 or high >= n_codes:
+            raise ShapeError(f"row_cell: expected squares in 0..{n_codes - 1}")
+    slot_of_group = np.full(n_groups, -1, np.int64)
+    slot_of_group[large] = np.arange(large.size)
+    # every large group's rows per square, counted on every thread in one pass
+    counts = large_group_codes(inverse, slot_of_group, large.size, cells, n_codes, thread_budget())
+    code_group = np.empty((large.size, n_codes), np.int64)
+    for slot, group in enumerate(large.tolist()):
+        leaf = quadtree_leaf_table(counts[slot], depth=GRAPH_CELL_DEPTH, max_count=max_rows)
+        present = np.zeros(n_codes, np.bool_)  # by code: no sort
+        present[leaf[counts[slot] > 0]] = True
+        rank = (np.cumsum(present) - 1)[leaf]
+        code_group[slot] = np.where(rank == 0, group, n_groups + rank - 1)
         n_groups += int(np.count_nonzero(present)) - 1
-    return split, n_groups
+    return split_rows(inverse, slot_of_group, cells, code_group), n_groups

@@ -163,13 +163,15 @@ class CovarianceModel:
             if self.needs_row_positions(table):
                 xyz, tiles, cells = positions.read(block.point_indices)
                 row_xyz = row_centroids(xyz, table.point_row, table.n_rows)
+                row_tile = np.zeros(table.n_rows, np.int64)
+                row_tile[table.point_row] = tiles
+                row_cell = np.zeros(table.n_rows, np.uint16)
+                row_cell[table.point_row] = cells
             else:  # the graph comes with the features: only the rows' places are needed
                 row_xyz = None
-                tiles, cells = positions.read_places(block.point_indices)
-            row_tile = np.zeros(table.n_rows, np.int64)
-            row_tile[table.point_row] = tiles
-            row_cell = np.zeros(table.n_rows, np.uint16)
-            row_cell[table.point_row] = cells
+                row_tile, row_cell = positions.row_places(
+                    block.point_indices, table.point_row, table.n_rows
+                )
             row_labels = self.predict_rows(
                 table.values,
                 row_xyz=row_xyz,
@@ -355,13 +357,25 @@ class _PositionFile:
             np.asarray(cells[point_indices]),
         )
 
-    def read_places(
-        self, point_indices: NDArray[np.int64]
+    def row_places(
+        self, point_indices: NDArray[np.int64], point_row: NDArray[np.int64], n_rows: int
     ) -> tuple[NDArray[np.int64], NDArray[np.uint16]]:
-        """``(m,)`` tiles and ``(m,)`` squares of the given points (of a scan streamed
-        through :meth:`record`)."""
+        """``(n_rows,)`` tile and square of every row: those of its points (``point_row``
+        the row of each of the given points; a row's last point decides, as numpy's
+        ``row_tile[point_row] = tiles`` would). Gathered and placed on every thread."""
+        from semantic3d.baselines.covariance._context_kernels import row_places
+
         _, tiles, cells = self._open()
-        return np.asarray(tiles[point_indices]), np.asarray(cells[point_indices])
+        point_indices = np.ascontiguousarray(point_indices, dtype=np.int64)
+        point_row = np.ascontiguousarray(point_row, dtype=np.int64)
+        row_tile = np.zeros(n_rows, np.int64)
+        row_cell = np.zeros(n_rows, np.uint16)
+        if not row_places(
+            np.asarray(tiles), np.asarray(cells), point_indices, point_row, row_tile, row_cell
+        ):  # a row whose points disagree: numpy's assignment decides (the last point)
+            row_tile[point_row] = tiles[point_indices]
+            row_cell[point_row] = cells[point_indices]
+        return row_tile, row_cell
 
     def _open(self) -> tuple[NDArray[np.float32], NDArray[np.int64], NDArray[np.uint16]]:
         if not self._complete:
