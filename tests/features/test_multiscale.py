@@ -250,3 +250,29 @@ def test_tiled_neighbours_are_the_whole_scans_within_each_tile(
         expected = first[table.neighbours[row]]
         expected = np.where(tile_of_point[expected] == tile_of_point[point], expected, -1)
         np.testing.assert_array_equal(got[int(point)], expected)
+
+
+@pytest.mark.parametrize("cylinders", [True, False])
+def test_level_reach_is_the_reach_the_features_give(cylinders: bool) -> None:
+    """The reach alone (what a tiled scan's first halo is estimated from) equals the one
+    computed beside the features, with and without cylinder columns, at every level."""
+    from semantic3d.features.multiscale import compute_level_features, level_reach
+    from semantic3d.features.neighbourhoods import LevelIndex
+    from semantic3d.features.pyramid import build_pyramid
+
+    rng = np.random.default_rng(4)
+    xyz = rng.gamma(1.5, 3.0, (20_000, 3)) * [1.0, 1.0, 0.3]
+    config = FeatureConfig(n_levels=3, cylinders=cylinders)
+    pyramid = build_pyramid(
+        xyz, base_voxel_size_m=config.base_voxel_size_m, n_levels=3, origin=np.zeros(3)
+    )
+    for number, level in enumerate(pyramid.levels):
+        index = LevelIndex(level.xyz, level.keys)
+        queries = level.xyz[:: max(1, level.n_voxels // 300)] + 0.01
+        _, expected = compute_level_features(
+            index, np.empty((level.n_voxels, 0)), queries, config=config, level=number
+        )
+        reach = level_reach(index, queries, config=config, level=number)
+        np.testing.assert_array_equal(reach, expected)
+        if cylinders:
+            assert reach.min() >= config.cylinder_radius_m(number)

@@ -152,7 +152,7 @@ def compute_level_features(
     )
     if block is not target and block is not out:
         copy_rows(block, target)
-    reach = found.kth_distance
+    reach = _reach(found.kth_distance, config, level)
     if config.cylinders:
         radius_m = config.cylinder_radius_m(level)
         width = len(config.cylinder_features)
@@ -161,12 +161,27 @@ def compute_level_features(
             cylinders = np.ascontiguousarray(cylinders[:, _cylinder_columns(config)])
         copy_rows(cylinders, out[:, column : column + width])
         column += width
-        reach = np.maximum(reach, radius_m)
     if config.colour or config.intensity:
         out[:, column:] = compute_attribute_features(
             attributes, found.indices, colour=config.colour, intensity=config.intensity
         )
     return out, reach
+
+
+def level_reach(
+    index: LevelIndex, queries: NDArray[np.float64], *, config: FeatureConfig, level: int
+) -> NDArray[np.float64]:
+    """The reach :func:`compute_level_features` gives ``queries`` (the k-th neighbour
+    distance, or the cylinder radius when larger), without their features."""
+    queries = np.ascontiguousarray(queries, dtype=np.float64)
+    return _reach(index.query(queries, k=config.k_neighbours).kth_distance, config, level)
+
+
+def _reach(kth: NDArray[np.float64], config: FeatureConfig, level: int) -> NDArray[np.float64]:
+    if config.cylinders:
+        reach: NDArray[np.float64] = np.maximum(kth, config.cylinder_radius_m(level))
+        return reach
+    return kth
 
 
 def _cylinder_columns(config: FeatureConfig) -> list[int]:

@@ -45,6 +45,7 @@ from semantic3d.core.pointcloud import PointCloud
 from semantic3d.core.threads import (
     iter_ahead,
     map_in_threads,
+    serial_section,
     take_free_threads,
     thread_budget,
 )
@@ -64,6 +65,7 @@ from semantic3d.features.multiscale import (
     compute_level_features,
     distinct_voxels,
     fill_level_columns,
+    level_reach,
 )
 from semantic3d.features.neighbourhoods import LevelIndex
 from semantic3d.features.pyramid import build_pyramid, grid_origin
@@ -306,7 +308,8 @@ class TiledScan:
         ]
         parts.append(pyramid.point_voxel)
         starts = []
-        with self._pyramid_path(tile).open("wb") as stream:
+        # written on one thread: the task's other threads go back to the map meanwhile
+        with serial_section(), self._pyramid_path(tile).open("wb") as stream:
             for value in parts:
                 starts.append(stream.tell())
                 pickle.dump(value, stream, protocol=pickle.HIGHEST_PROTOCOL)
@@ -623,14 +626,11 @@ class TiledScan:
         if level.n_voxels >= config.k_neighbours:
             step = max(1, level.n_voxels // _HALO_SAMPLE)
             sample = level.xyz[::step]
-            _, kth = compute_level_features(
-                LevelIndex(level.xyz, level.keys),
-                level.attributes,
-                sample,
-                config=config,
-                level=number,
+            # the reach the features would give the sample, without the features
+            reach = level_reach(
+                LevelIndex(level.xyz, level.keys), sample, config=config, level=number
             )
-            halo = max(floor, 1.1 * float(np.quantile(kth, 0.95)))
+            halo = max(floor, 1.1 * float(np.quantile(reach, 0.95)))
         self._first_halo[number] = halo
         return halo
 

@@ -44,7 +44,7 @@ from numpy.typing import NDArray
 
 from semantic3d.core.errors import DataFormatError, ShapeError
 from semantic3d.core.pointcloud import PointCloud
-from semantic3d.core.threads import map_in_threads, thread_budget
+from semantic3d.core.threads import map_in_threads, serial_section, thread_budget
 from semantic3d.spatial.grid import Bounds, TileGrid, TileKey
 
 if TYPE_CHECKING:
@@ -851,7 +851,9 @@ class TileStoreWriter:
                 order = np.empty(counts[row], np.int32)
                 self._fill(tiles[row], records, order, offsets[row])
                 begin = int(starts[row])
-                with writing:  # one writer at a time: a file's writes take turns anyway
+                # one writer at a time (a file's writes take turns anyway), on one thread:
+                # the task's other threads go back to the map while it waits and writes
+                with serial_section(), writing:
                     _write_at(
                         points_file.fileno(), _as_bytes(records), points_at + begin * dtype.itemsize
                     )
