@@ -184,6 +184,7 @@ class TiledScan:
         self.workdir = Path(tempfile.mkdtemp(prefix="s3d-tiles-", dir=workdir))
         self.origin: NDArray[np.float64] = np.zeros(3)
         self._level_sizes = [0] * config.n_levels
+        self._densest_sizes = [0] * config.n_levels  # the densest tile's level sizes
         self._first_halo: dict[int, float] = {}
         self._whole: dict[int, _WholeLevel | None] = {}
         self.whole_level_points = whole_level_points
@@ -278,15 +279,19 @@ class TiledScan:
         n_threads = thread_budget()
         total = max(1, self.n_points)
         order = sorted(self.tiles, key=lambda tile: (-self.store.count(tile), tile))
-        for sizes in map_in_threads(
-            self._build_pyramid,
-            order,
-            n_threads=n_threads,
-            numba_threads_per_task=lambda tile: math.ceil(
-                n_threads * self.store.count(tile) / total
-            ),
-            name="s3d-pyramid",
+        for rank, sizes in enumerate(
+            map_in_threads(
+                self._build_pyramid,
+                order,
+                n_threads=n_threads,
+                numba_threads_per_task=lambda tile: math.ceil(
+                    n_threads * self.store.count(tile) / total
+                ),
+                name="s3d-pyramid",
+            )
         ):
+            if rank == 0:  # the densest tile (the first halos are estimated in it)
+                self._densest_sizes = list(sizes)
             for number, n_voxels in enumerate(sizes):
                 self._level_sizes[number] += n_voxels
 
@@ -417,7 +422,9 @@ class TiledScan:
 
         Levels are independent: they are computed at the same time on the thread budget's
         threads, the largest first, numba's kernels of each on a share of the threads in
-        proportion to its voxels (a small level's kernels alone cannot fill many cores).
+        proportion to the voxels its trees are built over (the level's when described
+        whole, and the densest tile's level for its first halo: level 0's first halo, the
+        largest of these trees, had one thread while the small levels had the others).
         """
         config = self.config
         numbers = [n for n in range(config.n_levels) if n not in self._first_halo]
@@ -425,7 +432,8 @@ class TiledScan:
             return
         n_threads = thread_budget()
         weight = {
-            n: self._level_sizes[n] if not config.per_point and self._described_whole(n) else 0
+            n: self._densest_sizes[n]
+            + (self._level_sizes[n] if not config.per_point and self._described_whole(n) else 0)
             for n in numbers
         }
         total = max(1, sum(weight.values()))
