@@ -18,6 +18,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from semantic3d.core.errors import ShapeError
 from semantic3d.core.pointcloud import PointCloud
+from semantic3d.core.threads import take_free_threads
 from semantic3d.features._row_kernels import copy_rows, distinct_values, put_rows, take_rows
 from semantic3d.features.attributes import compute_attribute_features
 from semantic3d.features.config import FeatureConfig
@@ -129,6 +130,8 @@ def compute_level_features(
         out = np.empty((queries.shape[0], width), np.float32)
     if out.shape != (queries.shape[0], width):
         raise ShapeError(f"out: expected ({queries.shape[0]}, {width}), found {out.shape}")
+    # in a map's last tasks each step goes on with the threads the others left
+    take_free_threads()
     found = index.query(queries, k=config.k_neighbours)
     if neighbours is not None:
         if neighbours.shape != found.indices.shape:
@@ -147,6 +150,7 @@ def compute_level_features(
         block = target
     else:
         block = np.empty(target.shape, np.float32)
+    take_free_threads()
     geometry_kernel(
         index.xyz, indices, queries, block, config.spherical_height, numba.get_num_threads()
     )
@@ -156,6 +160,7 @@ def compute_level_features(
     if config.cylinders:
         radius_m = config.cylinder_radius_m(level)
         width = len(config.cylinder_features)
+        take_free_threads()
         cylinders = compute_cylinder_features(index.xyz, queries, radius_m=radius_m)
         if width != N_CYLINDER_COLUMNS:
             cylinders = np.ascontiguousarray(cylinders[:, _cylinder_columns(config)])
