@@ -4,8 +4,9 @@ Hand-written (numba) because the library it replaces here, pgeof's nanoflann sea
 holds the GIL for the whole call, builds its tree on one thread and starts one thread
 per core of the machine on every call whatever the process was asked to use: tiles of a
 scan could not be searched at the same time and ``--threads`` could not cap it. This tree
-is built level by level (the nodes of a level split in parallel; a top level's few large
-nodes each split on every thread), searched in parallel
+is built level by level (a top level's few large nodes each split on every thread, the
+next levels' nodes split in parallel), then subtree by subtree (each whole on one thread,
+taken as threads come free), searched in parallel
 over the queries, releases the GIL and runs on numba's threads (the package's budget,
 :mod:`semantic3d.core.threads`).
 
