@@ -7,7 +7,9 @@ Thread counts above the machine's cores are left out, so the same command gives 
 table on a 16-core machine. Every measurement runs in a fresh process capped at ``N``
 threads (``NUMBA_NUM_THREADS`` = ``OMP_NUM_THREADS`` = N and
 :func:`semantic3d.core.threads.set_thread_limit`), warmed up first (numba's cached
-kernels loaded; the best of ``--repeat`` runs), on the same files, in the same run:
+kernels loaded; the best of ``--repeat`` runs), with the allocator policy of the command
+line's compute commands (:func:`semantic3d.core.allocator.keep_freed_memory`), on the same
+files, in the same run:
 
 - ``iter_points``: an ASCII scan (``--points`` lines of the street scene) streamed
   through :func:`semantic3d.io.iter_ascii_points`; peer: ``pyarrow.csv.read_csv`` with
@@ -161,9 +163,12 @@ def _pyarrow_rows(path: Path, n_threads: int, columns: list[str]) -> int:
 
 
 def child(job: dict[str, Any]) -> dict[str, Any]:
-    """One measurement in this (fresh, capped) process."""
+    """One measurement in this (fresh, capped) process, with the allocator policy the
+    command line's compute commands apply (freed memory kept for reuse)."""
+    from semantic3d.core.allocator import keep_freed_memory
     from semantic3d.core.threads import set_thread_limit
 
+    keep_freed_memory()
     n = int(job["threads"])
     set_thread_limit(n)
     path, work = job["path"], Path(job["work"])

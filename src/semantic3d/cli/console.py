@@ -89,11 +89,16 @@ THREADS_HELP = (
 def threads_option() -> Any:
     """The ``--threads N`` option: caps the command's compute threads while it runs
     (:func:`semantic3d.core.threads.set_thread_limit`, applied as the option is parsed, so
-    before the command imports numba; the previous cap is back when the command ends)."""
+    before the command imports numba; the previous cap is back when the command ends).
+    A command with it computes: the C allocator keeps freed memory for reuse from then on
+    (:func:`semantic3d.core.allocator.keep_freed_memory`)."""
     return typer.Option(None, "--threads", min=1, help=THREADS_HELP, callback=_use_threads)
 
 
 def _use_threads(context: typer.Context, value: int | None) -> int | None:
+    from semantic3d.core.allocator import keep_freed_memory
+
+    keep_freed_memory()  # a compute command: freed memory kept for the next tile's arrays
     if value is not None:
         from semantic3d.core import threads
 
