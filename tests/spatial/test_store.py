@@ -366,3 +366,38 @@ def test_reading_every_tile_keeps_the_mapped_store_out_of_resident_memory(
         worst = max(worst, _mapped_kib(points_file))
     assert seen == cloud.n_points
     assert worst < 4 << 10  # KiB: the remap period and a tile, not the 16 MB store
+
+
+def test_tiles_read_on_many_threads_while_the_maps_are_reopened(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Tiles of a folder store read on several threads at once, the maps reopened on every
+    read (a scan's tasks read cores and halos at the same time, and the maps are reopened
+    after every 128 MiB read): every read gets its points, none a map taken from under it."""
+    import threading
+
+    import semantic3d.spatial.store as store_module
+
+    cloud = _cloud(5_000)
+    store = build_tile_store(_chunks(cloud, 3000), tmp_path / "store", grid=TileGrid.square(1.0))
+    monkeypatch.setattr(store_module, "REMAP_BYTES", 1)
+    expected = {tile: cloud[store.read_core(tile).indices] for tile in store.tiles}
+    failures: list[BaseException] = []
+    start = threading.Barrier(4)
+
+    def read() -> None:
+        try:
+            start.wait()
+            for _ in range(40):
+                for tile in store.tiles:
+                    core = store.read_core(tile)
+                    assert core.cloud.equals(expected[tile])
+        except BaseException as exc:  # noqa: BLE001 - reported below
+            failures.append(exc)
+
+    threads = [threading.Thread(target=read) for _ in range(4)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert not failures, failures[0]

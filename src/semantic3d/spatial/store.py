@@ -243,6 +243,7 @@ class TileStore:
         self._points: NDArray[Any] | None = None
         self._order: NDArray[np.int32] | None = None
         self._read_bytes = 0
+        self._maps_lock = threading.Lock()  # tiles are read on several threads at once
         if self._starts.shape != (len(self.tiles) + 1,) or int(self._starts[-1]) != self.n_points:
             raise DataFormatError(
                 f"expected {self.n_points} points in {len(self.tiles)} tiles, found an index "
@@ -279,6 +280,7 @@ class TileStore:
         store._points = points
         store._order = order
         store._read_bytes = 0
+        store._maps_lock = threading.Lock()
         return store
 
     def _arrays(self, touching: int = 0) -> tuple[NDArray[Any], NDArray[np.int32]]:
@@ -286,29 +288,33 @@ class TileStore:
         ``touching`` records; opened anew after every :data:`REMAP_BYTES` read, so that the
         pages read stop counting as this process's memory once nothing holds them (a
         mapping keeps every page it was read through resident: the whole store, in the
-        end)."""
-        if self.directory is not None:
-            self._read_bytes += touching * self._dtype.itemsize
-            if self._read_bytes > REMAP_BYTES:
-                self._points = self._order = None
-                self._read_bytes = touching * self._dtype.itemsize
-        if self._points is None or self._order is None:
+        end). Safe on several threads at once: a thread reopening the maps does not
+        take them from under another (the maps it returns stay valid while held)."""
+        with self._maps_lock:
+            if self.directory is not None:
+                self._read_bytes += touching * self._dtype.itemsize
+                if self._read_bytes > REMAP_BYTES:
+                    self._points = self._order = None
+                    self._read_bytes = touching * self._dtype.itemsize
+            if self._points is not None and self._order is not None:
+                return self._points, self._order
+            folder = self._folder()
             try:
                 # Plain arrays over the maps: slicing a np.memmap subclass costs ~10 µs.
-                folder = self._folder()
-                self._points = np.asarray(np.load(folder / POINTS_FILE, mmap_mode="r"))
-                self._order = np.asarray(np.load(folder / ORDER_FILE, mmap_mode="r"))
+                points = np.asarray(np.load(folder / POINTS_FILE, mmap_mode="r"))
+                order = np.asarray(np.load(folder / ORDER_FILE, mmap_mode="r"))
             except (OSError, ValueError) as exc:
                 raise DataFormatError(
                     f"expected the store's point files, found {exc}", path=str(folder)
                 ) from exc
-            if self._points.shape != (self.n_points,) or self._points.dtype != self._dtype:
+            if points.shape != (self.n_points,) or points.dtype != self._dtype:
                 raise DataFormatError(
                     f"expected {self.n_points} records of {self._dtype}, found "
-                    f"{self._points.shape} {self._points.dtype}",
+                    f"{points.shape} {points.dtype}",
                     path=str(folder / POINTS_FILE),
                 )
-        return self._points, self._order
+            self._points, self._order = points, order
+            return points, order
 
     def __reduce__(self) -> tuple[Any, tuple[str]]:
         return (TileStore, (str(self._folder()),))
