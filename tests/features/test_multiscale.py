@@ -276,3 +276,54 @@ def test_level_reach_is_the_reach_the_features_give(cylinders: bool) -> None:
         np.testing.assert_array_equal(reach, expected)
         if cylinders:
             assert reach.min() >= config.cylinder_radius_m(number)
+
+
+def test_a_tiles_levels_computed_in_parts_give_the_same_rows_and_neighbours(
+    scene: PointCloud, tmp_path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A tile's level queries split into parts (strips, each from its own box, at the same
+    time) give the rows and neighbour lists of the tile in one piece, and of the whole
+    scan, bit for bit."""
+    import semantic3d.features.tiling as tiling
+    from semantic3d.core.threads import thread_limit
+
+    config = FeatureConfig(**{**_fields(SMALL), "cylinder_features": CYLINDER_FEATURES})
+    expected = compute_multiscale_features(scene, config=config).point_values()
+    in_parts = []
+    exact_level = TiledScan._exact_level
+
+    def spied(self, *args, **options):  # type: ignore[no-untyped-def]
+        in_parts.append(options.get("around") is not None)
+        return exact_level(self, *args, **options)
+
+    monkeypatch.setattr(TiledScan, "_exact_level", spied)
+
+    def tiled(min_part: int) -> tuple[np.ndarray, dict]:
+        monkeypatch.setattr(tiling, "_MIN_PART_QUERIES", min_part)
+        got = np.full_like(expected, np.nan)
+        neighbours = {}
+        with (
+            thread_limit(3),
+            TiledScan(
+                _chunks(scene, 7000),
+                config=config,
+                tile_size_m=12.8,
+                workdir=tmp_path,
+                whole_level_points=0,  # every level tile by tile
+            ) as scan,
+        ):
+            for tile in scan.map_tiles(lambda features: features):
+                got[tile.point_indices] = tile.table.point_values()
+                neighbours[tile.tile] = tile.table.neighbours
+        return got, neighbours
+
+    whole, whole_lists = tiled(10**9)  # one piece
+    assert in_parts and not any(in_parts)
+    in_parts.clear()
+    parts, part_lists = tiled(40)  # every level of every tile in parts
+    assert sum(in_parts) > 10
+    assert np.array_equal(whole, expected)
+    assert np.array_equal(parts, expected)
+    assert whole_lists.keys() == part_lists.keys()
+    for tile, lists in whole_lists.items():
+        np.testing.assert_array_equal(part_lists[tile], lists)

@@ -88,6 +88,12 @@ _WHOLE_VOXEL_COST = 12
 voxels of a first halo's tree build (measured on simulated street scans: 2.9 µs against
 0.23 µs a voxel on one thread); it only shares threads out, never changes a row."""
 
+_PARTS_PER_THREAD = 2
+"""A large tile level's queries are computed in up to this many parts a thread."""
+
+_MIN_PART_QUERIES = 20_000
+"""The fewest queries a part holds (a part builds its own k-d tree over its box)."""
+
 _SLACK_M = 1e-6
 """Points may sit this far outside their tile's edges (rounding of cell indices)."""
 
@@ -564,14 +570,14 @@ class TiledScan:
                 whole = self._whole_level(number)
                 if whole is None:
                     level = levels[number]
-                    self._exact_level(
+                    self._exact_level_in_parts(
                         tile,
                         number,
                         level.xyz
                         if needed.size == level.n_voxels
                         else take_rows(level.xyz, needed),
                         neighbour_keys if number == 0 else None,
-                        out=out,
+                        out,
                     )
                 else:
                     at = np.searchsorted(whole.keys, levels[number].keys[needed])
@@ -654,6 +660,46 @@ class TiledScan:
         self._first_halo[number] = halo
         return halo
 
+    def _exact_level_in_parts(
+        self,
+        tile: Tile,
+        number: int,
+        queries: NDArray[np.float64],
+        neighbour_keys: NDArray[np.int64] | None,
+        out: NDArray[np.float32],
+    ) -> None:
+        """:meth:`_exact_level` of a tile's level queries, in parts computed at the same
+        time when the tile's task has several threads: consecutive queries (in key order,
+        strips across the tile), each part on one thread from its own box (the part's
+        extent plus the first halo), so what one part runs alone another overlaps. Every
+        row is exact whatever box it starts from: the same rows as in one piece."""
+        n_threads = thread_budget()
+        n = queries.shape[0]
+        n_parts = min(_PARTS_PER_THREAD * n_threads, n // _MIN_PART_QUERIES)
+        if n_threads <= 1 or n_parts <= 1:
+            self._exact_level(tile, number, queries, neighbour_keys, out=out)
+            return
+        bounds = np.linspace(0, n, n_parts + 1).astype(np.int64)
+
+        def part(index: int) -> None:
+            start, stop = int(bounds[index]), int(bounds[index + 1])
+            rows = queries[start:stop]
+            self._exact_level(
+                tile,
+                number,
+                rows,
+                None if neighbour_keys is None else neighbour_keys[start:stop],
+                out=out[start:stop],
+                around=np.array(
+                    [rows[:, 0].min(), rows[:, 0].max(), rows[:, 1].min(), rows[:, 1].max()]
+                ),
+            )
+
+        for _ in map_in_threads(
+            part, range(n_parts), n_threads=n_threads, ordered=False, name="s3d-part"
+        ):
+            pass
+
     def _exact_level(
         self,
         tile: Tile,
@@ -662,10 +708,12 @@ class TiledScan:
         neighbour_keys: NDArray[np.int64] | None = None,
         *,
         out: NDArray[np.float32] | None = None,
+        around: NDArray[np.float64] | None = None,
     ) -> NDArray[np.float32]:
         """Level ``number`` features of ``queries`` (in ``tile``), widening the halo until exact.
 
-        First the tile plus the level's first halo (:meth:`_first_halo_m`); a query whose k-th
+        First the tile (or ``around``: ``x_low, x_high, y_low, y_high`` holding the
+        queries) plus the level's first halo (:meth:`_first_halo_m`); a query whose k-th
         neighbour lies beyond the halo's edge is asked again in a box containing the ball
         of that radius (the k-th distance within a subset bounds the true one), which is
         then exact; a subset with fewer than k points doubles the box. With
@@ -678,14 +726,11 @@ class TiledScan:
             out = np.empty((queries.shape[0], len(config.level_feature_names)), np.float32)
         pending: NDArray[np.intp] | None = None  # None: every query (the first ask)
         halo = self._first_halo_m(number)
-        box = np.array(
-            [
-                tile[0] * size - halo,
-                (tile[0] + 1) * size + halo,
-                tile[1] * size - halo,
-                (tile[1] + 1) * size + halo,
-            ]
-        )
+        if around is None:
+            around = np.array(
+                [tile[0] * size, (tile[0] + 1) * size, tile[1] * size, (tile[1] + 1) * size]
+            )
+        box = np.asarray(around, dtype=np.float64) + np.array([-halo, halo, -halo, halo])
         while pending is None or pending.size:
             box[[0, 2]] = np.maximum(box[[0, 2]], self._tile_low - 1.0)
             box[[1, 3]] = np.minimum(box[[1, 3]], self._tile_high + 1.0)
