@@ -392,7 +392,7 @@ def test_tiles_read_on_many_threads_while_the_maps_are_reopened(
                 for tile in store.tiles:
                     core = store.read_core(tile)
                     assert core.cloud.equals(expected[tile])
-        except BaseException as exc:  # noqa: BLE001 - reported below
+        except BaseException as exc:  # reported below
             failures.append(exc)
 
     threads = [threading.Thread(target=read) for _ in range(4)]
