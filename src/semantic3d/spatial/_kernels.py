@@ -441,6 +441,26 @@ def _radix_place(
         out_order[destination[i]] = order[i]
 
 
+@nb.njit(cache=True, nogil=True, parallel=True)
+def group_order(
+    groups: np.ndarray, n_groups: int, n_threads: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+    """``np.argsort(groups, kind="stable")`` of ids ``0..n_groups-1``, each group's bounds
+    in it (``n_groups + 1``) and every element's place in its group: one stable counting
+    sort (:func:`stable_destinations`)."""
+    n = groups.shape[0]
+    destination, totals = stable_destinations(groups, max(0, n_groups - 1), n_threads)
+    bounds = np.zeros(n_groups + 1, np.int64)
+    for group in range(n_groups):
+        bounds[group + 1] = bounds[group] + totals[group]
+    order = np.empty(n, np.int64)
+    local = np.empty(n, np.int64)
+    for i in nb.prange(n):
+        order[destination[i]] = i
+        local[i] = destination[i] - bounds[groups[i]]
+    return order, bounds, local
+
+
 @nb.njit(cache=True, nogil=True)
 def key_order(keys: np.ndarray, bits: int, n_threads: int) -> np.ndarray:  # pragma: no cover
     """``np.argsort(keys, kind="stable")`` of packed keys (three parts of ``bits`` bits),

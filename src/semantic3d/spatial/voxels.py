@@ -30,6 +30,7 @@ __all__ = [
     "ExtentError",
     "compute_cells",
     "grid_origin",
+    "group_order",
     "key_order",
     "key_runs",
     "pack_keys",
@@ -115,6 +116,23 @@ def key_order(keys: NDArray[np.int64], *, bits: int = CELL_BITS) -> NDArray[np.i
         np.ascontiguousarray(keys, dtype=np.int64), int(bits), numba.get_num_threads()
     )
     return order
+
+
+def group_order(
+    groups: NDArray[np.int64], n_groups: int
+) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
+    """Elements grouped by an id ``0..n_groups-1``: ``np.argsort(groups, kind="stable")``,
+    each group's bounds in that order (``n_groups + 1``) and every element's place within
+    its group. A counting sort on every thread of the budget (the same order whatever the
+    threads)."""
+    import numba
+
+    from semantic3d.spatial._kernels import group_order as counting_order
+
+    order, bounds, local = counting_order(
+        np.ascontiguousarray(groups, dtype=np.int64), int(n_groups), numba.get_num_threads()
+    )
+    return order, bounds, local
 
 
 def key_runs(keys: NDArray[np.int64], order: NDArray[np.int64]) -> NDArray[np.int64]:

@@ -345,8 +345,9 @@ def test_groups_split_and_ordered_on_threads_equal_their_numpy_definition(
     thread) and the compiled grouping (a counting sort) give the numpy definitions: the
     same numbering of squares, the stable order of rows, the groups' bounds and each
     row's place in its group, on any number of threads."""
-    from semantic3d.baselines.covariance._context_kernels import group_order
     from semantic3d.baselines.covariance.context import GRAPH_CELL_DEPTH, _split_groups
+    from semantic3d.core.threads import thread_limit
+    from semantic3d.spatial.voxels import group_order
 
     rng = np.random.default_rng(seed)
     inverse = rng.integers(0, n_groups, n)
@@ -361,7 +362,8 @@ def test_groups_split_and_ordered_on_threads_equal_their_numpy_definition(
     np.testing.assert_array_equal(split, expected)
     assert count == expected_count
     for threads in (1, 3):
-        order, bounds, local = group_order(split, count, threads)
+        with thread_limit(threads):
+            order, bounds, local = group_order(split, count)
         np.testing.assert_array_equal(order, np.argsort(split, kind="stable"))
         np.testing.assert_array_equal(bounds, np.searchsorted(split[order], np.arange(count + 1)))
         np.testing.assert_array_equal(local[order], np.arange(n) - bounds[split[order]])

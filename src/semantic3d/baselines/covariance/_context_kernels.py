@@ -242,42 +242,6 @@ def split_rows(
 
 
 @nb.njit(cache=True, nogil=True, parallel=True)
-def group_order(
-    inverse: np.ndarray, n_groups: int, n_threads: int
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover - compiled
-    """The rows grouped: ``np.argsort(inverse, kind="stable")``, each group's bounds in it
-    (``n_groups + 1``) and every row's place within its group. A counting sort on every
-    thread (blocks of rows counted apart, placed from the counts summed before them): the
-    same whatever the threads."""
-    n = inverse.shape[0]
-    n_blocks, per_block = _row_blocks(n, n_threads, max(1, n_groups))
-    counts = np.zeros((n_blocks, n_groups), np.int64)
-    for block in nb.prange(n_blocks):
-        for i in range(block * per_block, min(n, (block + 1) * per_block)):
-            counts[block, inverse[i]] += 1
-    bounds = np.zeros(n_groups + 1, np.int64)
-    starts = np.empty((n_blocks, n_groups), np.int64)
-    running = 0
-    for group in range(n_groups):
-        bounds[group] = running
-        for block in range(n_blocks):
-            starts[block, group] = running
-            running += counts[block, group]
-    bounds[n_groups] = running
-    order = np.empty(n, np.int64)
-    local = np.empty(n, np.int64)
-    for block in nb.prange(n_blocks):
-        nexts = starts[block].copy()
-        for i in range(block * per_block, min(n, (block + 1) * per_block)):
-            group = inverse[i]
-            at = nexts[group]
-            nexts[group] = at + 1
-            order[at] = i
-            local[i] = at - bounds[group]
-    return order, bounds, local
-
-
-@nb.njit(cache=True, nogil=True, parallel=True)
 def column_range(lists: np.ndarray, width: int) -> tuple[Any, Any]:  # pragma: no cover
     """Smallest and largest entry of the first ``width`` columns, reduced on every thread."""
     low: Any = np.iinfo(np.int64).max

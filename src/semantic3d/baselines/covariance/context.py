@@ -308,10 +308,9 @@ def _dense_groups(row_group: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDAr
     if low < 0 or high >= max(1 << 20, 4 * n):
         groups, inverse = np.unique(row_group, return_inverse=True)
         return groups, inverse.reshape(-1).astype(np.int64, copy=False)
-    present = np.zeros(high + 1, np.bool_)
-    present[row_group] = True
-    rank = np.cumsum(present, dtype=np.int64) - 1
-    return np.flatnonzero(present).astype(np.int64), rank[row_group]
+    from semantic3d.features.multiscale import distinct_voxels  # a marked table, threaded
+
+    return distinct_voxels(row_group)
 
 
 def lists_suffice(neighbours: NDArray[np.int64] | None, n_neighbours: int) -> bool:
@@ -364,12 +363,13 @@ def label_rows_by_group(
                 max_sweeps=max_sweeps,
                 neighbours=neighbours,
             )
-    from semantic3d.baselines.covariance._context_kernels import group_order, grouped_edges
+    from semantic3d.baselines.covariance._context_kernels import grouped_edges
+    from semantic3d.spatial.voxels import group_order
 
     result = np.empty(n, np.int64)
     # the rows group by group (each ascending), the groups' bounds, each row's place in
     # its group: one counting sort on the task's threads
-    order, bounds, local = group_order(inverse, n_groups, thread_budget())
+    order, bounds, local = group_order(inverse, n_groups)
     edges = edge_bounds = None
     if lists_suffice(neighbours, n_neighbours):
         assert neighbours is not None

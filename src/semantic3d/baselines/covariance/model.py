@@ -160,18 +160,16 @@ class CovarianceModel:
         if positions is None:
             row_labels = self.predict_rows(table.values)
         else:
-            if self.needs_row_positions(table):
-                xyz, tiles, cells = positions.read(block.point_indices)
-                row_xyz = row_centroids(xyz, table.point_row, table.n_rows)
-                row_tile = np.zeros(table.n_rows, np.int64)
-                row_tile[table.point_row] = tiles
-                row_cell = np.zeros(table.n_rows, np.uint16)
-                row_cell[table.point_row] = cells
-            else:  # the graph comes with the features: only the rows' places are needed
-                row_xyz = None
-                row_tile, row_cell = positions.row_places(
-                    block.point_indices, table.point_row, table.n_rows
+            row_xyz = (
+                row_centroids(
+                    positions.read_xyz(block.point_indices), table.point_row, table.n_rows
                 )
+                if self.needs_row_positions(table)
+                else None  # the graph comes with the features: only the rows' places
+            )
+            row_tile, row_cell = positions.row_places(
+                block.point_indices, table.point_row, table.n_rows
+            )
             row_labels = self.predict_rows(
                 table.values,
                 row_xyz=row_xyz,
@@ -345,17 +343,11 @@ class _PositionFile:
                 yield chunk
         self._complete = True
 
-    def read(
-        self, point_indices: NDArray[np.int64]
-    ) -> tuple[NDArray[np.float32], NDArray[np.int64], NDArray[np.uint16]]:
-        """``(m, 3)`` positions, ``(m,)`` tiles and ``(m,)`` squares of the given points (of
-        a scan streamed through :meth:`record`)."""
-        xyz, tiles, cells = self._open()
-        return (
-            np.asarray(xyz[point_indices]),
-            np.asarray(tiles[point_indices]),
-            np.asarray(cells[point_indices]),
-        )
+    def read_xyz(self, point_indices: NDArray[np.int64]) -> NDArray[np.float32]:
+        """``(m, 3)`` positions of the given points (of a scan streamed through
+        :meth:`record`)."""
+        xyz, _, _ = self._open()
+        return np.asarray(xyz[point_indices])
 
     def row_places(
         self, point_indices: NDArray[np.int64], point_row: NDArray[np.int64], n_rows: int
