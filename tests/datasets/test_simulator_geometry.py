@@ -7,6 +7,8 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
@@ -230,3 +232,58 @@ def test_scan_labels_are_those_of_the_solid_or_zone_each_ray_hit() -> None:
     np.testing.assert_array_equal(cloud.labels, expected)
     assert set(np.unique(cloud.labels)) == {1, 2, 3, 4, 5, 6, 8}
     assert class_by_name("cars").value in cloud.labels
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    angles=st.lists(
+        st.tuples(*[st.floats(-7.0, 7.0, allow_nan=False)] * 3), min_size=0, max_size=12
+    ),
+    moving=st.lists(st.booleans(), min_size=12, max_size=12),
+)
+def test_packed_primitives_hold_each_primitives_own_rotation_and_bounds(
+    angles: list[tuple[float, float, float]], moving: list[bool]
+) -> None:
+    """The table packed column by column holds, bit for bit, what each primitive gives
+    alone (its rotation transposed, its bounds with its motion), and its other fields."""
+    from semantic3d.datasets.simulator.primitives import (
+        P_CENTER,
+        P_MOTION_DIR,
+        P_PATH,
+        P_REFLECTANCE,
+        P_RGB,
+        P_WORLD_TO_LOCAL,
+        pack_primitives,
+    )
+
+    surface = Surface((10, 200, 30), 0.25, 0.3, 0.5, 2.0)
+    prims = [
+        Primitive(
+            Shape(number % len(Shape)),
+            (number * 1.5, -2.0, 0.25 * number),
+            (0.5 + number, 0.25, 1.0 + 0.1 * number),
+            1 + number % 8,
+            surface,
+            yaw,
+            pitch,
+            roll,
+            motion=Motion((0.6, 0.8, 0.0), 1.5, 3.0, 0.5) if moving[number] else None,
+        )
+        for number, (yaw, pitch, roll) in enumerate(angles)
+    ]
+    packed = pack_primitives(prims)
+    assert packed.n_primitives == len(prims)
+    for row, prim in enumerate(prims):
+        rotation = prim.rotation()
+        lower, upper = prim.bounds(rotation)
+        params = packed.params[row]
+        assert params[P_WORLD_TO_LOCAL : P_WORLD_TO_LOCAL + 9].tobytes() == rotation.T.tobytes()
+        assert packed.lower[row].tobytes() == lower.tobytes()
+        assert packed.upper[row].tobytes() == upper.tobytes()
+        assert params[P_CENTER : P_CENTER + 3].tolist() == list(prim.center)
+        assert params[P_RGB : P_RGB + 3].tolist() == [10, 200, 30]
+        assert params[P_REFLECTANCE] == 0.25
+        direction = params[P_MOTION_DIR : P_MOTION_DIR + 3].tolist()
+        assert direction == ([0.6, 0.8, 0.0] if prim.motion else [0.0, 0.0, 0.0])
+        assert params[P_PATH] == (3.0 if prim.motion else 0.0)
+        assert packed.shapes[row] == int(prim.shape) and packed.labels[row] == prim.label

@@ -193,13 +193,7 @@ def rotation_matrix(
     >>> np.round(rotation_matrix(math.pi / 2) @ [1.0, 0.0, 0.0], 12).tolist()
     [0.0, 1.0, 0.0]
     """
-    cz, sz = math.cos(yaw_rad), math.sin(yaw_rad)
-    cy, sy = math.cos(pitch_rad), math.sin(pitch_rad)
-    cx, sx = math.cos(roll_rad), math.sin(roll_rad)
-    rz = np.array([[cz, -sz, 0.0], [sz, cz, 0.0], [0.0, 0.0, 1.0]])
-    ry = np.array([[cy, 0.0, sy], [0.0, 1.0, 0.0], [-sy, 0.0, cy]])
-    rx = np.array([[1.0, 0.0, 0.0], [0.0, cx, -sx], [0.0, sx, cx]])
-    return rz @ ry @ rx
+    return rotation_matrices([yaw_rad], [pitch_rad], [roll_rad])[0]
 
 
 # Column layout of the packed primitive table read by the kernels.
@@ -245,27 +239,75 @@ def pack_surface(surface: Surface, row: NDArray[np.float64], start: int) -> None
 
 
 def pack_primitives(primitives: Sequence[Primitive]) -> PackedPrimitives:
-    """Flatten ``primitives`` into the table layout above (plus world bounds per row)."""
+    """Flatten ``primitives`` into the table layout above (plus world bounds per row).
+
+    Column by column over every primitive (a scene holds thousands: a loop building each
+    one's matrices ran alone for ~30 ms before a many-thread sweep could start); the
+    same numbers as :meth:`Primitive.rotation` and :meth:`Primitive.bounds`.
+    """
     n = len(primitives)
     params = np.zeros((n, N_PARAMS), np.float64)
-    shapes = np.zeros(n, np.int32)
-    labels = np.zeros(n, np.uint8)
-    lower = np.zeros((n, 3), np.float64)
-    upper = np.zeros((n, 3), np.float64)
-    for i, prim in enumerate(primitives):
-        row = params[i]
-        row[P_CENTER : P_CENTER + 3] = prim.center
-        rotation = prim.rotation()
-        row[P_WORLD_TO_LOCAL : P_WORLD_TO_LOCAL + 9] = rotation.T.ravel()
-        row[P_HALF : P_HALF + 3] = prim.half_size
-        if prim.motion is not None:
-            row[P_MOTION_DIR : P_MOTION_DIR + 3] = prim.motion.direction
-            row[P_SPEED] = prim.motion.speed_m_s
-            row[P_PATH] = prim.motion.length_m
-            row[P_PHASE] = prim.motion.phase_m
-        row[P_DENSITY] = prim.density_per_m
-        pack_surface(prim.surface, row, P_RGB)
-        shapes[i] = int(prim.shape)
-        labels[i] = prim.label
-        lower[i], upper[i] = prim.bounds(rotation)
+    if n == 0:
+        empty = np.zeros((0, 3), np.float64)
+        return PackedPrimitives(params, np.zeros(0, np.int32), np.zeros(0, np.uint8), empty, empty)
+    rotation = rotation_matrices(
+        [prim.yaw_rad for prim in primitives],
+        [prim.pitch_rad for prim in primitives],
+        [prim.roll_rad for prim in primitives],
+    )
+    center = np.array([prim.center for prim in primitives], np.float64)
+    half = np.array([prim.half_size for prim in primitives], np.float64)
+    params[:, P_CENTER : P_CENTER + 3] = center
+    params[:, P_WORLD_TO_LOCAL : P_WORLD_TO_LOCAL + 9] = rotation.transpose(0, 2, 1).reshape(n, 9)
+    params[:, P_HALF : P_HALF + 3] = half
+    moving = [i for i, prim in enumerate(primitives) if prim.motion is not None]
+    direction = np.zeros((n, 3), np.float64)
+    length = np.zeros(n, np.float64)
+    for i in moving:
+        motion = primitives[i].motion
+        assert motion is not None
+        direction[i] = motion.direction
+        length[i] = motion.length_m
+        params[i, P_SPEED] = motion.speed_m_s
+        params[i, P_PHASE] = motion.phase_m
+    params[moving, P_MOTION_DIR : P_MOTION_DIR + 3] = direction[moving]
+    params[moving, P_PATH] = length[moving]
+    params[:, P_DENSITY] = [prim.density_per_m for prim in primitives]
+    surfaces = [prim.surface for prim in primitives]
+    params[:, P_RGB : P_RGB + 3] = [surface.rgb for surface in surfaces]
+    params[:, P_REFLECTANCE] = [surface.reflectance for surface in surfaces]
+    params[:, P_TEXTURE_AMPLITUDE] = [surface.texture_amplitude for surface in surfaces]
+    params[:, P_TEXTURE_SCALE] = [surface.texture_scale_m for surface in surfaces]
+    params[:, P_COLOUR_NOISE] = [surface.colour_noise for surface in surfaces]
+    shapes = np.array([int(prim.shape) for prim in primitives], np.int32)
+    labels = np.array([prim.label for prim in primitives], np.uint8)
+    extent = (np.abs(rotation) @ half[:, :, None])[:, :, 0]
+    lower, upper = center - extent, center + extent
+    end = direction[moving] * length[moving, None]
+    lower[moving] = np.minimum(lower[moving], lower[moving] + end)
+    upper[moving] = np.maximum(upper[moving], upper[moving] + end)
     return PackedPrimitives(params, shapes, labels, lower, upper)
+
+
+def rotation_matrices(
+    yaw_rad: Sequence[float], pitch_rad: Sequence[float], roll_rad: Sequence[float]
+) -> NDArray[np.float64]:
+    """``(n, 3, 3)``: :func:`rotation_matrix` of each angle triple (the same numbers: the
+    same sines and cosines, the same products)."""
+    n = len(yaw_rad)
+    turns = np.zeros((3, n, 3, 3), np.float64)
+    for axis, angles, (c0, s0, s1, c1) in (
+        (0, yaw_rad, ((0, 0), (0, 1), (1, 0), (1, 1))),  # Rz
+        (1, pitch_rad, ((0, 0), (2, 0), (0, 2), (2, 2))),  # Ry
+        (2, roll_rad, ((1, 1), (1, 2), (2, 1), (2, 2))),  # Rx
+    ):
+        cos = np.array([math.cos(angle) for angle in angles], np.float64)
+        sin = np.array([math.sin(angle) for angle in angles], np.float64)
+        turn = turns[axis]
+        turn[:, c0[0], c0[1]] = cos
+        turn[:, s0[0], s0[1]] = -sin
+        turn[:, s1[0], s1[1]] = sin
+        turn[:, c1[0], c1[1]] = cos
+        fixed = 2 - axis  # the axis the rotation keeps: z, y, x
+        turn[:, fixed, fixed] = 1.0
+    return turns[0] @ turns[1] @ turns[2]
