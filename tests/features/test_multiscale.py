@@ -327,3 +327,86 @@ def test_a_tiles_levels_computed_in_parts_give_the_same_rows_and_neighbours(
     assert whole_lists.keys() == part_lists.keys()
     for tile, lists in whole_lists.items():
         np.testing.assert_array_equal(part_lists[tile], lists)
+
+
+def test_pyramids_kept_unwritten_are_read_from_memory_and_written_by_the_shared_pass(
+    scene: PointCloud, tmp_path
+) -> None:
+    """On several threads the pyramid pass keeps its last pyramids in memory (at most a
+    thread count of the cache's bytes) for the shared pass to write; rows read from them
+    equal rows read from the files, the shared pass and pickling write them all, and on
+    one thread every pyramid is written as it is built."""
+    import pickle
+
+    from semantic3d.core.threads import thread_limit
+
+    expected = compute_multiscale_features(scene, config=SMALL).point_values()
+
+    def scan(threads: int, cache_bytes: int = 96 << 20) -> TiledScan:
+        with thread_limit(threads):
+            return TiledScan(
+                _chunks(scene, 7000),
+                config=SMALL,
+                tile_size_m=3.2,
+                workdir=tmp_path,
+                cache_bytes=cache_bytes,
+            )
+
+    def files(tiled: TiledScan) -> set[str]:
+        return {path.name for path in tiled.workdir.glob("*.pyramid.pickle")}
+
+    with scan(1) as alone:  # one thread: nothing left for a shared pass to overlap
+        assert not alone._unwritten and len(files(alone)) == len(alone.tiles)
+
+    with scan(3) as kept:
+        assert set(kept._unwritten) == set(kept.tiles)  # small pyramids: all fit
+        assert not files(kept)
+        got = np.full_like(expected, np.nan)
+        for tile in kept.iter_features():  # read from memory
+            got[tile.point_indices] = tile.table.point_values()
+        assert np.array_equal(got, expected)
+        copy = pickle.loads(pickle.dumps(kept))  # pickling writes them first
+        assert not kept._unwritten and kept._unwritten_bytes == 0
+        assert len(files(kept)) == len(kept.tiles)
+        got[:] = np.nan
+        for tile in copy.iter_features():  # read from the files
+            got[tile.point_indices] = tile.table.point_values()
+        assert np.array_equal(got, expected)
+
+    with scan(3) as shared:
+        shared.share()  # the shared pass writes them beside its levels
+        assert not shared._unwritten and len(files(shared)) == len(shared.tiles)
+
+    with scan(2, cache_bytes=60_000) as bounded:  # room for a few: the others written
+        assert 0 < len(bounded._unwritten) < len(bounded.tiles)
+        assert bounded._unwritten_bytes <= 2 * 60_000
+        assert len(files(bounded)) == len(bounded.tiles) - len(bounded._unwritten)
+        got[:] = np.nan
+        for features in bounded.map_tiles(lambda features: features):
+            got[features.point_indices] = features.table.point_values()
+        assert not bounded._unwritten
+        assert np.array_equal(got, expected)
+
+
+def test_part_bounds_split_queries_into_runs_of_about_equal_work() -> None:
+    """Where the level is dense (a cylinder holds many points) a part holds fewer queries;
+    on an even level the parts hold equal counts; the bounds always cover every query
+    once, in order."""
+    from semantic3d.features.tiling import part_bounds
+
+    rng = np.random.default_rng(1)
+    sparse = rng.uniform([0, 0], [10, 10], (20_000, 2))
+    dense = rng.uniform([10, 0], [11, 10], (20_000, 2))  # as many queries in a tenth of the area
+    queries = np.c_[np.concatenate([sparse, dense]), np.zeros(40_000)]
+    bounds = part_bounds(queries, 4, 2.0)  # 800 queries a square there, 8,000 here
+    assert bounds[0] == 0 and bounds[-1] == queries.shape[0]
+    assert np.all(np.diff(bounds) > 0)
+    sizes = np.diff(bounds)
+    assert sizes[0] > 2 * sizes[-1]  # the dense queries come last: smaller parts there
+    even = np.c_[rng.uniform(0, 10, (40_000, 2)), np.zeros(40_000)]
+    sizes = np.diff(part_bounds(even, 4, 0.4))
+    assert np.all(np.abs(sizes - 10_000) < 1_000)
+    for n, n_parts in [(0, 3), (5, 1), (7, 9), (100_000, 5)]:
+        got = part_bounds(rng.uniform(0, 1, (n, 3)), n_parts, 0.1)
+        assert got.shape == (n_parts + 1,) and got[0] == 0 and got[-1] == n
+        assert np.all(np.diff(got) >= 0)

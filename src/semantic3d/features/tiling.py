@@ -94,6 +94,17 @@ _PARTS_PER_THREAD = 2
 _MIN_PART_QUERIES = 20_000
 """The fewest queries a part holds (a part builds its own k-d tree over its box)."""
 
+_COST_CELL_RADII = 4.0
+"""A part's work is estimated from the level's points per square this many cylinder radii
+wide around each query (:func:`part_bounds`)."""
+
+_QUERY_COST_POINTS = 1000.0
+"""A query's own cost (its k-NN search), in points of its square's count: fitted to the
+parts' CPU time in a 10 M-point street scan's densest tile (levels 0-2 alike)."""
+
+_BOUND_SAMPLE = 1 << 16
+"""Queries sampled to place the parts' bounds."""
+
 _SLACK_M = 1e-6
 """Points may sit this far outside their tile's edges (rounding of cell indices)."""
 
@@ -204,6 +215,10 @@ class TiledScan:
         self._cache_bytes = 0
         self._cache_scale = 1  # tiles computed at once: each keeps its neighbours cached
         self._part_starts: dict[Tile, tuple[int, ...]] = {}  # in a tile's pyramid file
+        # pyramids built but not yet written (read from here meanwhile): the last ones
+        # of the pyramid pass, written on the shared pass's threads
+        self._unwritten: dict[Tile, list[_TileLevel | NDArray[np.int64]]] = {}
+        self._unwritten_bytes = 0
         self._lock = threading.Lock()
         try:
             self.store = self._spill(chunks)
@@ -230,6 +245,8 @@ class TiledScan:
     def close(self) -> None:
         """Remove the scratch folder and everything in it."""
         self._cache.clear()
+        self._unwritten.clear()
+        self._unwritten_bytes = 0
         shutil.rmtree(self.workdir, ignore_errors=True)
 
     @property
@@ -292,7 +309,7 @@ class TiledScan:
         order = sorted(self.tiles, key=lambda tile: (-self.store.count(tile), tile))
         for rank, sizes in enumerate(
             map_in_threads(
-                self._build_pyramid,
+                lambda tile: self._build_pyramid(tile, n_threads),
                 order,
                 n_threads=n_threads,
                 numba_threads_per_task=lambda tile: math.ceil(
@@ -306,7 +323,9 @@ class TiledScan:
             for number, n_voxels in enumerate(sizes):
                 self._level_sizes[number] += n_voxels
 
-    def _build_pyramid(self, tile: Tile) -> list[int]:
+    def _build_pyramid(self, tile: Tile, n_threads: int = 1) -> list[int]:
+        """Build a tile's pyramid and write it (or keep it for the shared pass to write,
+        when the pass runs on ``n_threads`` > 1); return its level sizes."""
         config = self.config
         points = self._load_points(tile).copied()  # contiguous, copied on every thread
         pyramid = build_pyramid(
@@ -318,19 +337,44 @@ class TiledScan:
         )
         # level by level, one after another in the tile's file: a level described whole,
         # or a halo, reads its level alone
-        parts: list[object] = [
+        parts: list[_TileLevel | NDArray[np.int64]] = [
             _TileLevel(level.xyz, level.keys, level.attributes, level.parent)
             for level in pyramid.levels
         ]
         parts.append(pyramid.point_voxel)
+        # The pass's last pyramids (the densest tiles: they start first and end last) are
+        # kept unwritten and written on the shared pass's threads beside its levels,
+        # instead of on one thread while the others wait; memory stays bounded: at most
+        # a thread count of the cache's bytes waits.
+        size = sum(part.nbytes for part in parts)
+        with self._lock:
+            defer = n_threads > 1 and self._unwritten_bytes + size <= self.cache_bytes * n_threads
+            if defer:
+                self._unwritten[tile] = parts
+                self._unwritten_bytes += size
+        if not defer:
+            # on one thread: the task's other threads go back to the map meanwhile
+            with serial_section():
+                self._write_pyramid(tile, parts)
+        return [level.n_voxels for level in pyramid.levels]
+
+    def _write_pyramid(self, tile: Tile, parts: list[_TileLevel | NDArray[np.int64]]) -> None:
+        """Write a tile's pyramid parts one after another in its scratch file (a level
+        described whole, or a halo, reads its level alone)."""
         starts = []
-        # written on one thread: the task's other threads go back to the map meanwhile
-        with serial_section(), self._pyramid_path(tile).open("wb") as stream:
+        with self._pyramid_path(tile).open("wb") as stream:
             for value in parts:
                 starts.append(stream.tell())
                 pickle.dump(value, stream, protocol=pickle.HIGHEST_PROTOCOL)
-        self._part_starts[tile] = tuple(starts)
-        return [level.n_voxels for level in pyramid.levels]
+        with self._lock:  # readers find the parts in one place or the other
+            self._part_starts[tile] = tuple(starts)
+            if self._unwritten.pop(tile, None) is not None:
+                self._unwritten_bytes -= sum(part.nbytes for part in parts)
+
+    def _write_unwritten(self) -> None:
+        """Write the pyramids still kept in memory (one after another, on this thread)."""
+        for tile, parts in list(self._unwritten.items()):
+            self._write_pyramid(tile, parts)
 
     def _level(self, tile: Tile, number: int) -> _TileLevel:
         """Level ``number`` of a tile's pyramid (through the cache)."""
@@ -355,6 +399,9 @@ class TiledScan:
             if cached is not None:
                 self._cache.move_to_end(key)
                 return cached
+            unwritten = self._unwritten.get(tile)
+            if unwritten is not None:
+                return unwritten[part]
         # A scratch file this object wrote itself: pickle loads it ~5x faster than npz.
         with self._pyramid_path(tile).open("rb") as stream:
             stream.seek(self._part_starts[tile][part])
@@ -429,7 +476,8 @@ class TiledScan:
 
     def _compute_shared(self) -> None:
         """The coarse levels described whole and every level's first halo (what every
-        tile reads; computed before tiles are computed at the same time).
+        tile reads; computed before tiles are computed at the same time), and the
+        pyramids the pyramid pass left unwritten.
 
         Levels are independent: they are computed at the same time on the thread budget's
         threads, the largest first, numba's kernels of each on a share of the threads in
@@ -437,13 +485,16 @@ class TiledScan:
         :data:`_WHOLE_VOXEL_COST` each) and the densest tile's level voxels its first
         halo's tree is built over (level 0's first halo, the largest tree, had one thread
         while the small levels had the others; then the largest level described whole
-        had one thread while level 0's ran).
+        had one thread while level 0's ran). Each unwritten pyramid is written on one
+        thread beside them (after the largest level: the levels read them from memory).
         """
         config = self.config
         numbers = [n for n in range(config.n_levels) if n not in self._first_halo]
+        n_threads = thread_budget()
+        if not numbers or n_threads <= 1:
+            self._write_unwritten()
         if not numbers:
             return
-        n_threads = thread_budget()
         weight = {
             n: self._densest_sizes[n]
             + (
@@ -454,20 +505,33 @@ class TiledScan:
             for n in numbers
         }
         total = max(1, sum(weight.values()))
+        levels: list[int | Tile] = sorted(numbers, key=lambda n: (-weight[n], n))
+        writes: list[int | Tile] = sorted(self._unwritten)
+        items = levels[:1] + writes + levels[1:]
 
-        def compute(number: int) -> None:
+        def compute(item: int | Tile) -> None:
+            if isinstance(item, tuple):
+                parts = self._unwritten.get(item)
+                if parts is not None:
+                    self._write_pyramid(item, parts)
+                return
             if not config.per_point:
                 take_free_threads()  # the last levels go on with the threads others left
-                self._whole_level(number)
+                self._whole_level(item)
             take_free_threads()
-            self._first_halo_m(number)
+            self._first_halo_m(item)
+
+        def threads_of(item: int | Tile) -> int:
+            if isinstance(item, tuple):
+                return 1
+            return max(1, math.ceil(n_threads * weight[item] / total))
 
         for _ in map_in_threads(
             compute,
-            sorted(numbers, key=lambda n: (-weight[n], n)),
+            items,
             n_threads=n_threads,
             ordered=False,
-            numba_threads_per_task=lambda n: max(1, math.ceil(n_threads * weight[n] / total)),
+            numba_threads_per_task=threads_of,
             name="s3d-shared",
         ):
             pass
@@ -518,7 +582,9 @@ class TiledScan:
             self._cache_scale = 1
 
     def __getstate__(self) -> dict[str, object]:
-        """What travels to another process: paths and numbers, no cached pyramid or rows."""
+        """What travels to another process: paths and numbers, no cached pyramid or rows
+        (the pyramids kept in memory are written first)."""
+        self._write_unwritten()
         state = dict(self.__dict__)
         state["_cache"] = OrderedDict()
         state["_cache_bytes"] = 0
@@ -679,7 +745,9 @@ class TiledScan:
         if n_threads <= 1 or n_parts <= 1:
             self._exact_level(tile, number, queries, neighbour_keys, out=out)
             return
-        bounds = np.linspace(0, n, n_parts + 1).astype(np.int64)
+        bounds = part_bounds(
+            queries, n_parts, _COST_CELL_RADII * self.config.cylinder_radius_m(number)
+        )
 
         def part(index: int) -> None:
             start, stop = int(bounds[index]), int(bounds[index + 1])
@@ -695,9 +763,8 @@ class TiledScan:
                 ),
             )
 
-        for _ in map_in_threads(
-            part, range(n_parts), n_threads=n_threads, ordered=False, name="s3d-part"
-        ):
+        parts = [index for index in range(n_parts) if bounds[index + 1] > bounds[index]]
+        for _ in map_in_threads(part, parts, n_threads=n_threads, ordered=False, name="s3d-part"):
             pass
 
     def _exact_level(
@@ -833,3 +900,29 @@ class TiledScan:
             put_rows(level.attributes, rows, attributes, offset)
             offset += rows.size
         return xyz, keys, attributes
+
+
+def part_bounds(queries: NDArray[np.float64], n_parts: int, cell_m: float) -> NDArray[np.int64]:
+    """Bounds of ``n_parts`` runs of consecutive ``queries`` of about equal work.
+
+    A query's work is its k-NN search plus its cylinder's points, which grow with the
+    level's points around it: estimated, from a sample of at most :data:`_BOUND_SAMPLE`
+    queries, as :data:`_QUERY_COST_POINTS` plus the queries in its square of ``cell_m``
+    (the queries of a tile's level are its voxels). Equal counts of queries left the parts
+    near the scanner half as long again as the others. Any bounds give the same rows.
+    """
+    n = queries.shape[0]
+    even = np.linspace(0, n, n_parts + 1).astype(np.int64)
+    if n_parts <= 1 or n == 0 or not cell_m > 0:
+        return even
+    step = max(1, -(-n // _BOUND_SAMPLE))
+    sample = queries[::step, :2]
+    cells = np.floor((sample - sample.min(axis=0)) / cell_m).astype(np.int64)
+    codes = cells[:, 0] * (int(cells[:, 1].max()) + 1) + cells[:, 1]
+    _, inverse, counts = np.unique(codes, return_inverse=True, return_counts=True)
+    work = np.cumsum(_QUERY_COST_POINTS + step * counts[inverse].astype(np.float64))
+    at = np.searchsorted(work, work[-1] * np.arange(1, n_parts) / n_parts)
+    bounds = np.empty(n_parts + 1, np.int64)
+    bounds[0], bounds[-1] = 0, n
+    bounds[1:-1] = np.minimum(at * step, n)
+    return np.maximum.accumulate(bounds)
