@@ -704,11 +704,26 @@ class TileStoreWriter:
         return self._staging / f"{tile[0]}_{tile[1]}.part"
 
     def _flush(self) -> None:
-        for tile, parts in self._buffers.items():
+        """Append every buffered tile to its part file: tiles at the same time on the
+        thread budget's threads, the largest first (writes to one file take turns, to
+        different files they do not: the stream's binning waited for them on one
+        thread)."""
+        held = sorted(
+            self._buffers.items(),
+            key=lambda item: (-sum(part.shape[0] for part in item[1]), item[0]),
+        )
+
+        def append(item: tuple[TileKey, list[NDArray[Any]]]) -> tuple[TileKey, int]:
+            tile, parts = item
             with self._part(tile).open("ab") as handle:
                 for part in parts:
                     part.tofile(handle)
-                    self.spilled_points += part.shape[0]
+            return tile, sum(part.shape[0] for part in parts)
+
+        for tile, n_points in map_in_threads(
+            append, held, n_threads=thread_budget(), ordered=False, name="s3d-spill"
+        ):
+            self.spilled_points += n_points
             self._on_disk.add(tile)
         self._buffers.clear()
         self._buffered = 0
