@@ -410,3 +410,32 @@ def test_part_bounds_split_queries_into_runs_of_about_equal_work() -> None:
         got = part_bounds(rng.uniform(0, 1, (n, 3)), n_parts, 0.1)
         assert got.shape == (n_parts + 1,) and got[0] == 0 and got[-1] == n
         assert np.all(np.diff(got) >= 0)
+
+
+@pytest.mark.parametrize(("n", "n_parts"), [(0, 4), (1, 4), (50_000, 1), (50_000, 2), (50_000, 14)])
+def test_part_blocks_hold_every_query_once_in_about_square_blocks(n: int, n_parts: int) -> None:
+    """Blocks are strips of consecutive queries cut along y: every query in exactly one,
+    about ``n_parts`` of them, and on an even level about as wide as they are tall."""
+    from semantic3d.features.tiling import part_blocks
+
+    rng = np.random.default_rng(n_parts)
+    xy = rng.uniform(0, 20, (n, 2))
+    queries = np.c_[xy[np.argsort(np.floor(xy[:, 0] / 0.1), kind="stable")], np.zeros(n)]
+    blocks = part_blocks(queries, n_parts, 0.4)
+    seen = np.zeros(n, np.int64)
+    extents = []
+    for start, stop, y_low, y_high in blocks:
+        assert 0 <= start < stop <= n and y_low < y_high
+        inside = start + np.flatnonzero(
+            (queries[start:stop, 1] >= y_low) & (queries[start:stop, 1] < y_high)
+        )
+        seen[inside] += 1
+        if inside.size:
+            extents.append(np.ptp(queries[inside, :2], axis=0))
+    assert np.all(seen == 1)
+    if n >= 50_000:
+        across = max(1, round(np.sqrt(n_parts)))
+        assert across * (-(-n_parts // across)) >= len(blocks) >= n_parts
+        if n_parts >= 4:
+            ratio = np.array([width / height for width, height in extents])
+            assert np.all((ratio > 0.5) & (ratio < 2.0))

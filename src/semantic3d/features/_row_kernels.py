@@ -22,6 +22,7 @@ __all__ = [
     "put_values",
     "rows_in_box",
     "rows_of_keys",
+    "scatter_rows",
     "store_keys",
     "take_rows",
 ]
@@ -40,6 +41,17 @@ def take_rows(source: NDArray[np.float64], rows: NDArray[np.intp]) -> NDArray[np
     out = np.empty((rows.size, source.shape[1]), source.dtype)
     put_rows(source, rows, out, 0)
     return out
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def scatter_rows(
+    source: NDArray[np.generic], rows: NDArray[np.intp], out: NDArray[np.generic]
+) -> None:  # pragma: no cover - compiled
+    """``out[rows] = source`` for 2-D arrays (``out`` may be a column slice; ``rows``
+    distinct)."""
+    for i in numba.prange(rows.size):
+        for column in range(source.shape[1]):
+            out[rows[i], column] = source[i, column]
 
 
 def leading_columns(found: NDArray[np.uint32], width: int) -> NDArray[np.uint32]:
