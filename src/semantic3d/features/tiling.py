@@ -742,10 +742,11 @@ class TiledScan:
         (its extent plus the first halo), so what one part runs alone another overlaps.
         Every row is exact whatever box it starts from: the same rows as in one piece.
 
-        Blocks, not strips: a box holds the part's queries and a halo around them, and
-        thin strips (one a thread, across the whole tile) held three times as many points
-        as queries on 7 threads; square blocks hold fewer, so more threads do not cost
-        more work."""
+        Blocks, not strips: a part asks again, in one box around them all, the few
+        queries its first box could not vouch for, and these lie along its edges; a
+        strip's (two long edges across the whole tile) held the whole strip again, a
+        block's holds a block. And a box's halo is a smaller share of a square than of a
+        thin strip, which more threads make thinner."""
         n_threads = thread_budget()
         n = queries.shape[0]
         n_parts = min(_PARTS_PER_THREAD * n_threads, n // _MIN_PART_QUERIES)
