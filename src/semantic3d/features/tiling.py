@@ -89,10 +89,10 @@ _WHOLE_VOXEL_COST = 12
 voxels of a first halo's tree build (measured on simulated street scans: 2.9 µs against
 0.23 µs a voxel on one thread); it only shares threads out, never changes a row."""
 
-_PARTS_PER_THREAD = 2
+_PARTS_PER_THREAD = 4
 """A large tile level's queries are computed in up to this many parts a thread."""
 
-_MIN_PART_QUERIES = 20_000
+_MIN_PART_QUERIES = 10_000
 """The fewest queries a part holds (a part builds its own k-d tree over its box)."""
 
 _COST_CELL_RADII = 4.0
@@ -103,7 +103,7 @@ _QUERY_COST_POINTS = 1000.0
 """A query's own cost (its k-NN search), in points of its square's count: fitted to the
 parts' CPU time in a 10 M-point street scan's densest tile (levels 0-2 alike)."""
 
-_BOUND_SAMPLE = 1 << 16
+_BOUND_SAMPLE = 1 << 14
 """Queries sampled to place the parts' bounds."""
 
 _SLACK_M = 1e-6
@@ -935,6 +935,18 @@ def _sampled_work(
     return step, sample, _QUERY_COST_POINTS + step * counts[inverse].astype(np.float64)
 
 
+def _equal_work_bounds(
+    n: int, n_parts: int, step: int, work: NDArray[np.float64]
+) -> NDArray[np.int64]:
+    """Bounds of ``n_parts`` runs of the ``n`` queries whose sampled work is ``work``."""
+    total = np.cumsum(work)
+    at = np.searchsorted(total, total[-1] * np.arange(1, n_parts) / n_parts)
+    bounds = np.empty(n_parts + 1, np.int64)
+    bounds[0], bounds[-1] = 0, n
+    bounds[1:-1] = np.minimum(at * step, n)
+    return np.maximum.accumulate(bounds)
+
+
 def part_bounds(queries: NDArray[np.float64], n_parts: int, cell_m: float) -> NDArray[np.int64]:
     """Bounds of ``n_parts`` runs of consecutive ``queries`` of about equal work.
 
@@ -948,12 +960,7 @@ def part_bounds(queries: NDArray[np.float64], n_parts: int, cell_m: float) -> ND
     if n_parts <= 1 or n == 0 or not cell_m > 0:
         return np.linspace(0, n, max(1, n_parts) + 1).astype(np.int64)
     step, _, work = _sampled_work(queries, cell_m)
-    total = np.cumsum(work)
-    at = np.searchsorted(total, total[-1] * np.arange(1, n_parts) / n_parts)
-    bounds = np.empty(n_parts + 1, np.int64)
-    bounds[0], bounds[-1] = 0, n
-    bounds[1:-1] = np.minimum(at * step, n)
-    return np.maximum.accumulate(bounds)
+    return _equal_work_bounds(n, n_parts, step, work)
 
 
 def part_blocks(
@@ -966,10 +973,11 @@ def part_blocks(
     the blocks are about square. Every query lies in exactly one block."""
     n = queries.shape[0]
     across = max(1, round(math.sqrt(max(1, n_parts))))
-    strips = part_bounds(queries, -(-max(1, n_parts) // across), cell_m)
-    if across == 1 or n == 0 or not cell_m > 0:
-        return [(int(a), int(b), -np.inf, np.inf) for a, b in pairwise(strips.tolist()) if b > a]
+    n_strips = -(-max(1, n_parts) // across)
+    if n == 0 or not cell_m > 0:
+        return [(0, n, -np.inf, np.inf)] if n else []
     step, sample, work = _sampled_work(queries, cell_m)
+    strips = _equal_work_bounds(n, n_strips, step, work) if n_strips > 1 else np.array([0, n])
     blocks = []
     for a, b in pairwise(strips.tolist()):
         if b <= a:
@@ -977,7 +985,7 @@ def part_blocks(
         inside = slice(-(-a // step), -(-b // step))  # the sampled queries of rows a:b
         y, weight = sample[inside, 1], work[inside]
         cuts = [-np.inf]
-        if y.size:
+        if y.size and across > 1:
             order = np.argsort(y, kind="stable")
             total = np.cumsum(weight[order])
             at = np.searchsorted(total, total[-1] * np.arange(1, across) / across)
