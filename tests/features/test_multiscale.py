@@ -388,28 +388,25 @@ def test_pyramids_kept_unwritten_are_read_from_memory_and_written_by_the_shared_
         assert np.array_equal(got, expected)
 
 
-def test_part_bounds_split_queries_into_runs_of_about_equal_work() -> None:
+def test_part_blocks_split_queries_into_runs_of_about_equal_work() -> None:
     """Where the level is dense (a cylinder holds many points) a part holds fewer queries;
-    on an even level the parts hold equal counts; the bounds always cover every query
-    once, in order."""
-    from semantic3d.features.tiling import part_bounds
+    on an even level the parts hold equal counts."""
+    from semantic3d.features.tiling import part_blocks
 
     rng = np.random.default_rng(1)
     sparse = rng.uniform([0, 0], [10, 10], (20_000, 2))
     dense = rng.uniform([10, 0], [11, 10], (20_000, 2))  # as many queries in a tenth of the area
     queries = np.c_[np.concatenate([sparse, dense]), np.zeros(40_000)]
-    bounds = part_bounds(queries, 4, 2.0)  # 800 queries a square there, 8,000 here
-    assert bounds[0] == 0 and bounds[-1] == queries.shape[0]
-    assert np.all(np.diff(bounds) > 0)
-    sizes = np.diff(bounds)
-    assert sizes[0] > 2 * sizes[-1]  # the dense queries come last: smaller parts there
+    # two strips; a 2 m square holds 800 sparse queries or 4,000 dense ones: works of
+    # 1,800 and 5,000 a query, so the first strip ends 6,400 queries into the dense ones
+    blocks = part_blocks(queries, 2, 2.0)
+    assert blocks[0][0] == 0 and blocks[-1][1] == queries.shape[0]
+    sizes = [stop - start for start, stop, _, _ in blocks]
+    assert len(sizes) == 2 and abs(sizes[0] - 26_400) < 1_000
     even = np.c_[rng.uniform(0, 10, (40_000, 2)), np.zeros(40_000)]
-    sizes = np.diff(part_bounds(even, 4, 0.4))
-    assert np.all(np.abs(sizes - 10_000) < 1_000)
-    for n, n_parts in [(0, 3), (5, 1), (7, 9), (100_000, 5)]:
-        got = part_bounds(rng.uniform(0, 1, (n, 3)), n_parts, 0.1)
-        assert got.shape == (n_parts + 1,) and got[0] == 0 and got[-1] == n
-        assert np.all(np.diff(got) >= 0)
+    even = even[np.argsort(np.floor(even[:, 0] / 0.1), kind="stable")]
+    sizes = [stop - start for start, stop, _, _ in part_blocks(even, 2, 0.4)]
+    assert np.all(np.abs(np.array(sizes) - 20_000) < 2_000)
 
 
 @pytest.mark.parametrize(("n", "n_parts"), [(0, 4), (1, 4), (50_000, 1), (50_000, 2), (50_000, 14)])

@@ -97,7 +97,7 @@ _MIN_PART_QUERIES = 10_000
 
 _COST_CELL_RADII = 4.0
 """A part's work is estimated from the level's points per square this many cylinder radii
-wide around each query (:func:`part_bounds`)."""
+wide around each query (:func:`part_blocks`)."""
 
 _QUERY_COST_POINTS = 1000.0
 """A query's own cost (its k-NN search), in points of its square's count: fitted to the
@@ -925,7 +925,10 @@ class TiledScan:
 def _sampled_work(
     queries: NDArray[np.float64], cell_m: float
 ) -> tuple[int, NDArray[np.float64], NDArray[np.float64]]:
-    """Every ``step``-th query's ``x, y`` and estimated work (see :func:`part_bounds`)."""
+    """Every ``step``-th query's ``x, y`` and estimated work: its k-NN search plus its
+    cylinder's points, which grow with the level's points around it, as
+    :data:`_QUERY_COST_POINTS` plus the sampled queries in its square of ``cell_m`` (the
+    queries of a tile's level are its voxels), at most :data:`_BOUND_SAMPLE` of them."""
     n = queries.shape[0]
     step = max(1, -(-n // _BOUND_SAMPLE))
     sample = queries[::step, :2]
@@ -947,30 +950,16 @@ def _equal_work_bounds(
     return np.maximum.accumulate(bounds)
 
 
-def part_bounds(queries: NDArray[np.float64], n_parts: int, cell_m: float) -> NDArray[np.int64]:
-    """Bounds of ``n_parts`` runs of consecutive ``queries`` of about equal work.
-
-    A query's work is its k-NN search plus its cylinder's points, which grow with the
-    level's points around it: estimated, from a sample of at most :data:`_BOUND_SAMPLE`
-    queries, as :data:`_QUERY_COST_POINTS` plus the queries in its square of ``cell_m``
-    (the queries of a tile's level are its voxels). Equal counts of queries left the parts
-    near the scanner half as long again as the others. Any bounds give the same rows.
-    """
-    n = queries.shape[0]
-    if n_parts <= 1 or n == 0 or not cell_m > 0:
-        return np.linspace(0, n, max(1, n_parts) + 1).astype(np.int64)
-    step, _, work = _sampled_work(queries, cell_m)
-    return _equal_work_bounds(n, n_parts, step, work)
-
-
 def part_blocks(
     queries: NDArray[np.float64], n_parts: int, cell_m: float
 ) -> list[tuple[int, int, float, float]]:
     """About ``n_parts`` blocks of ``queries`` (sorted along x: a tile's level in key
     order) of about equal work, as ``(start, stop, y_low, y_high)``: the queries of rows
-    ``start:stop`` whose y lies in ``[y_low, y_high)``. Strips of :func:`part_bounds`
-    along x, each cut along y at equal estimated work; as many strips as cuts a strip, so
-    the blocks are about square. Every query lies in exactly one block."""
+    ``start:stop`` whose y lies in ``[y_low, y_high)``. Strips of consecutive queries
+    along x, each cut along y, at equal estimated work (:func:`_sampled_work`: equal
+    counts of queries left the parts near the scanner half as long again as the others);
+    as many strips as cuts a strip, so the blocks are about square. Every query lies in
+    exactly one block; any blocks give the same rows."""
     n = queries.shape[0]
     across = max(1, round(math.sqrt(max(1, n_parts))))
     n_strips = -(-max(1, n_parts) // across)
