@@ -506,9 +506,9 @@ class TiledScan:
             for n in numbers
         }
         total = max(1, sum(weight.values()))
-        levels: list[int | Tile] = sorted(numbers, key=lambda n: (-weight[n], n))
-        writes: list[int | Tile] = sorted(self._unwritten)
-        items = levels[:1] + writes + levels[1:]
+        ranked = sorted(numbers, key=lambda n: (-weight[n], n))
+        writes: list[int | Tile] = list(sorted(self._unwritten))
+        items: list[int | Tile] = [*ranked[:1], *writes, *ranked[1:]]
 
         def compute(item: int | Tile) -> None:
             if isinstance(item, tuple):
