@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import colorsys
 import doctest
+from collections.abc import Iterable
 
 import numpy as np
 import pytest
@@ -16,7 +17,7 @@ from semantic3d.features.attributes import compute_attribute_features
 from semantic3d.features.multiscale import distinct_voxels
 from semantic3d.features.names import CYLINDER_FEATURES, GEOMETRIC_FEATURES, parse_column_name
 from semantic3d.features.scan import iter_scan_features
-from semantic3d.features.tiling import TiledScan
+from semantic3d.features.tiling import TiledScan, TileFeatures
 from semantic3d.io.chunks import rechunk
 from tests.baselines.scene import make_street_scene
 
@@ -329,13 +330,13 @@ def test_a_tiles_levels_computed_in_parts_give_the_same_rows_and_neighbours(
         np.testing.assert_array_equal(part_lists[tile], lists)
 
 
-def test_pyramids_kept_unwritten_are_read_from_memory_and_written_by_the_shared_pass(
+def test_pyramids_kept_in_memory_are_read_from_there_and_written_for_another_process(
     scene: PointCloud, tmp_path
 ) -> None:
     """On several threads the pyramid pass keeps its last pyramids in memory (at most a
-    thread count of the cache's bytes) for the shared pass to write; rows read from them
-    equal rows read from the files, the shared pass and pickling write them all, and on
-    one thread every pyramid is written as it is built."""
+    thread count of the cache's bytes) instead of writing them: rows read from them equal
+    rows read from files, pickling writes them all first, and on one thread every pyramid
+    is written as it is built."""
     import pickle
 
     from semantic3d.core.threads import thread_limit
@@ -355,37 +356,32 @@ def test_pyramids_kept_unwritten_are_read_from_memory_and_written_by_the_shared_
     def files(tiled: TiledScan) -> set[str]:
         return {path.name for path in tiled.workdir.glob("*.pyramid.pickle")}
 
-    with scan(1) as alone:  # one thread: nothing left for a shared pass to overlap
-        assert not alone._unwritten and len(files(alone)) == len(alone.tiles)
+    def rows(tiles: Iterable[TileFeatures]) -> np.ndarray:
+        got = np.full_like(expected, np.nan)
+        for tile in tiles:
+            got[tile.point_indices] = tile.table.point_values()
+        return got
+
+    with scan(1) as alone:  # one thread: every pyramid written as it is built
+        assert not alone._kept and len(files(alone)) == len(alone.tiles)
+        assert np.array_equal(rows(alone.iter_features()), expected)
 
     with scan(3) as kept:
-        assert set(kept._unwritten) == set(kept.tiles)  # small pyramids: all fit
+        assert set(kept._kept) == set(kept.tiles)  # small pyramids: all fit
         assert not files(kept)
-        got = np.full_like(expected, np.nan)
-        for tile in kept.iter_features():  # read from memory
-            got[tile.point_indices] = tile.table.point_values()
-        assert np.array_equal(got, expected)
+        with thread_limit(3):
+            assert np.array_equal(rows(kept.map_tiles(lambda tile: tile)), expected)
+        assert not files(kept)  # read from memory, never written
         copy = pickle.loads(pickle.dumps(kept))  # pickling writes them first
-        assert not kept._unwritten and kept._unwritten_bytes == 0
+        assert not kept._kept and kept._kept_bytes == 0
         assert len(files(kept)) == len(kept.tiles)
-        got[:] = np.nan
-        for tile in copy.iter_features():  # read from the files
-            got[tile.point_indices] = tile.table.point_values()
-        assert np.array_equal(got, expected)
-
-    with scan(3) as shared:
-        shared.share()  # the shared pass writes them beside its levels
-        assert not shared._unwritten and len(files(shared)) == len(shared.tiles)
+        assert np.array_equal(rows(copy.iter_features()), expected)  # from the files
 
     with scan(2, cache_bytes=60_000) as bounded:  # room for a few: the others written
-        assert 0 < len(bounded._unwritten) < len(bounded.tiles)
-        assert bounded._unwritten_bytes <= 2 * 60_000
-        assert len(files(bounded)) == len(bounded.tiles) - len(bounded._unwritten)
-        got[:] = np.nan
-        for features in bounded.map_tiles(lambda features: features):
-            got[features.point_indices] = features.table.point_values()
-        assert not bounded._unwritten
-        assert np.array_equal(got, expected)
+        assert 0 < len(bounded._kept) < len(bounded.tiles)
+        assert bounded._kept_bytes <= 2 * 60_000
+        assert len(files(bounded)) == len(bounded.tiles) - len(bounded._kept)
+        assert np.array_equal(rows(bounded.iter_features()), expected)
 
 
 def test_part_blocks_split_queries_into_runs_of_about_equal_work() -> None:

@@ -216,10 +216,10 @@ class TiledScan:
         self._cache_bytes = 0
         self._cache_scale = 1  # tiles computed at once: each keeps its neighbours cached
         self._part_starts: dict[Tile, tuple[int, ...]] = {}  # in a tile's pyramid file
-        # pyramids built but not yet written (read from here meanwhile): the last ones
-        # of the pyramid pass, written on the shared pass's threads
-        self._unwritten: dict[Tile, list[_TileLevel | NDArray[np.int64]]] = {}
-        self._unwritten_bytes = 0
+        # pyramids built and kept in memory, not written (the pyramid pass's last ones;
+        # written when the scan is pickled)
+        self._kept: dict[Tile, list[_TileLevel | NDArray[np.int64]]] = {}
+        self._kept_bytes = 0
         self._lock = threading.Lock()
         try:
             self.store = self._spill(chunks)
@@ -246,8 +246,8 @@ class TiledScan:
     def close(self) -> None:
         """Remove the scratch folder and everything in it."""
         self._cache.clear()
-        self._unwritten.clear()
-        self._unwritten_bytes = 0
+        self._kept.clear()
+        self._kept_bytes = 0
         shutil.rmtree(self.workdir, ignore_errors=True)
 
     @property
@@ -325,8 +325,8 @@ class TiledScan:
                 self._level_sizes[number] += n_voxels
 
     def _build_pyramid(self, tile: Tile, n_threads: int = 1) -> list[int]:
-        """Build a tile's pyramid and write it (or keep it for the shared pass to write,
-        when the pass runs on ``n_threads`` > 1); return its level sizes."""
+        """Build a tile's pyramid and write it (or keep it in memory, within bounds, when
+        the pass runs on ``n_threads`` > 1); return its level sizes."""
         config = self.config
         points = self._load_points(tile).copied()  # contiguous, copied on every thread
         pyramid = build_pyramid(
@@ -344,16 +344,17 @@ class TiledScan:
         ]
         parts.append(pyramid.point_voxel)
         # The pass's last pyramids (the densest tiles: they start first and end last) are
-        # kept unwritten and written on the shared pass's threads beside its levels,
-        # instead of on one thread while the others wait; memory stays bounded: at most
-        # a thread count of the cache's bytes waits.
+        # kept in memory, not written (on one thread, while the others waited for the
+        # pass's end) nor read back: memory stays bounded, at most a thread count of the
+        # cache's bytes is kept (the tiles' pass caches as much). Written when the scan
+        # is pickled for another process.
         size = sum(part.nbytes for part in parts)
         with self._lock:
-            defer = n_threads > 1 and self._unwritten_bytes + size <= self.cache_bytes * n_threads
-            if defer:
-                self._unwritten[tile] = parts
-                self._unwritten_bytes += size
-        if not defer:
+            keep = n_threads > 1 and self._kept_bytes + size <= self.cache_bytes * n_threads
+            if keep:
+                self._kept[tile] = parts
+                self._kept_bytes += size
+        if not keep:
             # on one thread: the task's other threads go back to the map meanwhile
             with serial_section():
                 self._write_pyramid(tile, parts)
@@ -369,12 +370,12 @@ class TiledScan:
                 pickle.dump(value, stream, protocol=pickle.HIGHEST_PROTOCOL)
         with self._lock:  # readers find the parts in one place or the other
             self._part_starts[tile] = tuple(starts)
-            if self._unwritten.pop(tile, None) is not None:
-                self._unwritten_bytes -= sum(part.nbytes for part in parts)
+            if self._kept.pop(tile, None) is not None:
+                self._kept_bytes -= sum(part.nbytes for part in parts)
 
-    def _write_unwritten(self) -> None:
+    def _write_kept(self) -> None:
         """Write the pyramids still kept in memory (one after another, on this thread)."""
-        for tile, parts in list(self._unwritten.items()):
+        for tile, parts in list(self._kept.items()):
             self._write_pyramid(tile, parts)
 
     def _level(self, tile: Tile, number: int) -> _TileLevel:
@@ -400,9 +401,9 @@ class TiledScan:
             if cached is not None:
                 self._cache.move_to_end(key)
                 return cached
-            unwritten = self._unwritten.get(tile)
-            if unwritten is not None:
-                return unwritten[part]
+            kept = self._kept.get(tile)
+            if kept is not None:
+                return kept[part]
         # A scratch file this object wrote itself: pickle loads it ~5x faster than npz.
         with self._pyramid_path(tile).open("rb") as stream:
             stream.seek(self._part_starts[tile][part])
@@ -477,8 +478,7 @@ class TiledScan:
 
     def _compute_shared(self) -> None:
         """The coarse levels described whole and every level's first halo (what every
-        tile reads; computed before tiles are computed at the same time), and the
-        pyramids the pyramid pass left unwritten.
+        tile reads; computed before tiles are computed at the same time).
 
         Levels are independent: they are computed at the same time on the thread budget's
         threads, the largest first, numba's kernels of each on a share of the threads in
@@ -486,16 +486,13 @@ class TiledScan:
         :data:`_WHOLE_VOXEL_COST` each) and the densest tile's level voxels its first
         halo's tree is built over (level 0's first halo, the largest tree, had one thread
         while the small levels had the others; then the largest level described whole
-        had one thread while level 0's ran). Each unwritten pyramid is written on one
-        thread beside them (after the largest level: the levels read them from memory).
+        had one thread while level 0's ran).
         """
         config = self.config
         numbers = [n for n in range(config.n_levels) if n not in self._first_halo]
-        n_threads = thread_budget()
-        if not numbers or n_threads <= 1:
-            self._write_unwritten()
         if not numbers:
             return
+        n_threads = thread_budget()
         weight = {
             n: self._densest_sizes[n]
             + (
@@ -506,33 +503,20 @@ class TiledScan:
             for n in numbers
         }
         total = max(1, sum(weight.values()))
-        ranked = sorted(numbers, key=lambda n: (-weight[n], n))
-        writes: list[int | Tile] = list(sorted(self._unwritten))
-        items: list[int | Tile] = [*ranked[:1], *writes, *ranked[1:]]
 
-        def compute(item: int | Tile) -> None:
-            if isinstance(item, tuple):
-                parts = self._unwritten.get(item)
-                if parts is not None:
-                    self._write_pyramid(item, parts)
-                return
+        def compute(number: int) -> None:
             if not config.per_point:
                 take_free_threads()  # the last levels go on with the threads others left
-                self._whole_level(item)
+                self._whole_level(number)
             take_free_threads()
-            self._first_halo_m(item)
-
-        def threads_of(item: int | Tile) -> int:
-            if isinstance(item, tuple):
-                return 1
-            return max(1, math.ceil(n_threads * weight[item] / total))
+            self._first_halo_m(number)
 
         for _ in map_in_threads(
             compute,
-            items,
+            sorted(numbers, key=lambda n: (-weight[n], n)),
             n_threads=n_threads,
             ordered=False,
-            numba_threads_per_task=threads_of,
+            numba_threads_per_task=lambda n: max(1, math.ceil(n_threads * weight[n] / total)),
             name="s3d-shared",
         ):
             pass
@@ -585,7 +569,7 @@ class TiledScan:
     def __getstate__(self) -> dict[str, object]:
         """What travels to another process: paths and numbers, no cached pyramid or rows
         (the pyramids kept in memory are written first)."""
-        self._write_unwritten()
+        self._write_kept()
         state = dict(self.__dict__)
         state["_cache"] = OrderedDict()
         state["_cache_bytes"] = 0
