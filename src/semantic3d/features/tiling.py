@@ -221,6 +221,7 @@ class TiledScan:
         self._kept: dict[Tile, list[_TileLevel | NDArray[np.int64]]] = {}
         self._kept_bytes = 0
         self._lock = threading.Lock()
+        self._writing = threading.Lock()  # one writer of the kept pyramids at a time
         try:
             self.store = self._spill(chunks)
             tiles = np.array(self.store.tiles)
@@ -374,9 +375,11 @@ class TiledScan:
                 self._kept_bytes -= sum(part.nbytes for part in parts)
 
     def _write_kept(self) -> None:
-        """Write the pyramids still kept in memory (one after another, on this thread)."""
-        for tile, parts in list(self._kept.items()):
-            self._write_pyramid(tile, parts)
+        """Write the pyramids still kept in memory (one after another, on this thread;
+        a second caller, e.g. another thread pickling the scan, waits for the first)."""
+        with self._writing:
+            for tile, parts in list(self._kept.items()):
+                self._write_pyramid(tile, parts)
 
     def _level(self, tile: Tile, number: int) -> _TileLevel:
         """Level ``number`` of a tile's pyramid (through the cache)."""
@@ -574,12 +577,13 @@ class TiledScan:
         state["_cache"] = OrderedDict()
         state["_cache_bytes"] = 0
         state["_whole"] = {}
-        del state["_lock"]
+        del state["_lock"], state["_writing"]
         return state
 
     def __setstate__(self, state: dict[str, object]) -> None:
         self.__dict__.update(state)
         self._lock = threading.Lock()
+        self._writing = threading.Lock()
         shared = self.workdir / _SHARED_FILE
         if shared.is_file():  # written by share() in the process that made the scan
             with shared.open("rb") as stream:
