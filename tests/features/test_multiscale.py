@@ -8,6 +8,8 @@ from collections.abc import Iterable
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 import semantic3d.features.names as names_module
 from semantic3d.core import PointCloud
@@ -435,3 +437,33 @@ def test_part_blocks_hold_every_query_once_in_about_square_blocks(n: int, n_part
         if n_parts >= 4:
             ratio = np.array([width / height for width, height in extents])
             assert np.all((ratio > 0.5) & (ratio < 2.0))
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    x=st.tuples(st.floats(-5.0, 25.0), st.floats(0.0, 12.0)),
+    y=st.tuples(st.floats(-5.0, 25.0), st.floats(0.0, 30.0)),
+    level=st.integers(0, 3),
+)
+def test_a_boxs_rows_are_found_within_the_levels_columns_across_it(
+    x: tuple[float, float], y: tuple[float, float], level: int
+) -> None:
+    """A level's rows inside a box, searched only in the run of voxel columns across the
+    box's x range, are those searched in the whole level (voxel centres at cell edges,
+    negative coordinates, boxes beyond the level and unbounded boxes included)."""
+    from semantic3d.features._row_kernels import rows_in_box
+    from semantic3d.features.pyramid import build_pyramid
+    from semantic3d.features.tiling import _rows_across
+
+    rng = np.random.default_rng(level)
+    xyz = rng.uniform([-3.0, -3.0, 0.0], [20.0, 20.0, 4.0], (4000, 3))
+    xyz[:500] = np.round(xyz[:500] / 0.2) * 0.2  # points on cell edges
+    pyramid = build_pyramid(
+        xyz, base_voxel_size_m=0.1, n_levels=4, origin=np.array([-3.0, -3.0, 0.0])
+    )
+    chosen = pyramid.levels[level]
+    box = np.array([x[0], x[0] + x[1], y[0], y[0] + y[1]])
+    for bounds in (box, np.array([-np.inf, np.inf, box[2], box[3]])):
+        first, last = _rows_across(chosen.keys, bounds[0], bounds[1], chosen.voxel_size_m)
+        got = first + rows_in_box(chosen.xyz[first:last], bounds)
+        np.testing.assert_array_equal(got, rows_in_box(chosen.xyz, bounds))

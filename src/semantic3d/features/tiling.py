@@ -72,6 +72,7 @@ from semantic3d.features.neighbourhoods import LevelIndex
 from semantic3d.features.pyramid import build_pyramid, grid_origin
 from semantic3d.spatial.grid import TileGrid, TileKey
 from semantic3d.spatial.store import TilePoints, TileStore, build_tile_store
+from semantic3d.spatial.voxels import CELL_BITS, CELL_OFFSET
 
 logger = logging.getLogger(__name__)
 
@@ -872,6 +873,7 @@ class TiledScan:
     ) -> tuple[NDArray[np.float64], NDArray[np.int64], NDArray[np.float64]]:
         """Level ``number`` points of every tile that lie inside ``box``."""
         size = self.tile_size_m
+        voxel = self.config.voxel_sizes_m[number]
         low = np.maximum(box[[0, 2]], self._tile_low)
         high = np.minimum(box[[1, 3]], self._tile_high)
         x_low, x_high = (
@@ -895,7 +897,8 @@ class TiledScan:
             ):
                 continue
             level = self._level(other, number)
-            parts.append((level, rows_in_box(level.xyz, box)))
+            first, last = _rows_across(level.keys, box[0], box[1], voxel)
+            parts.append((level, first + rows_in_box(level.xyz[first:last], box)))
         # the parts' rows concatenated, copied on every thread
         total = sum(rows.size for _, rows in parts)
         xyz = np.empty((total, 3), np.float64)
@@ -970,3 +973,20 @@ def part_blocks(
         cuts.append(np.inf)
         blocks += [(a, b, low, high) for low, high in pairwise(cuts)]
     return blocks
+
+
+def _rows_across(
+    keys: NDArray[np.int64], x_low: float, x_high: float, voxel_m: float
+) -> tuple[int, int]:
+    """The run of a level's rows (sorted by key: by voxel column along x first) that holds
+    every voxel whose centre may lie in ``[x_low, x_high]`` (one column of slack each side
+    for rounding), so that a box's rows are searched there instead of in the whole level
+    (a part's box is a small share of its tile)."""
+    if not (math.isfinite(x_low) and math.isfinite(x_high)) or keys.size == 0:
+        return 0, int(keys.size)
+    shift = 2 * CELL_BITS
+    top = 1 << CELL_BITS
+    low = min(max(math.floor(x_low / voxel_m) - 1 + CELL_OFFSET, 0), top)
+    high = min(max(math.floor(x_high / voxel_m) + 2 + CELL_OFFSET, 0), top)
+    first, last = np.searchsorted(keys, [low << shift, high << shift])
+    return int(first), int(last)
