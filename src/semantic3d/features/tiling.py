@@ -792,7 +792,9 @@ class TiledScan:
         queries) plus the level's first halo (:meth:`_first_halo_m`); a query whose k-th
         neighbour lies beyond the halo's edge is asked again in a box containing the ball
         of that radius (the k-th distance within a subset bounds the true one), which is
-        then exact; a subset with fewer than k points doubles the box. With
+        then exact; a subset with fewer than k points doubles the box. The queries left
+        by the first ask are asked again side by side: those nearest each side of its box
+        in a box of their own (a thin band along that side, not the first box again). With
         ``neighbour_keys`` (``(m, k)``), also the keys of every query's exact neighbours.
         The rows go to ``out`` (``(m, n_level_features)``, may be a column slice) when given.
         """
@@ -800,14 +802,17 @@ class TiledScan:
         size = self.tile_size_m
         if out is None:
             out = np.empty((queries.shape[0], len(config.level_feature_names)), np.float32)
-        pending: NDArray[np.intp] | None = None  # None: every query (the first ask)
         halo = self._first_halo_m(number)
         if around is None:
             around = np.array(
                 [tile[0] * size, (tile[0] + 1) * size, tile[1] * size, (tile[1] + 1) * size]
             )
-        box = np.asarray(around, dtype=np.float64) + np.array([-halo, halo, -halo, halo])
-        while pending is None or pending.size:
+        # (queries asked, box): None, the first ask, is every query
+        asks: list[tuple[NDArray[np.intp] | None, NDArray[np.float64]]] = [
+            (None, np.asarray(around, dtype=np.float64) + np.array([-halo, halo, -halo, halo]))
+        ]
+        while asks:
+            pending, box = asks.pop()
             box[[0, 2]] = np.maximum(box[[0, 2]], self._tile_low - 1.0)
             box[[1, 3]] = np.minimum(box[[1, 3]], self._tile_high + 1.0)
             infinite = np.array(
@@ -844,28 +849,29 @@ class TiledScan:
             if pending is None:
                 if neighbour_keys is not None and found is not None:
                     store_keys(keys, found, exact, neighbour_keys)
-                pending = np.flatnonzero(~exact)
+                left = np.flatnonzero(~exact)
             else:
                 out[pending[exact]] = block[exact]
                 if neighbour_keys is not None and found is not None:
                     rows = pending[exact]
                     neighbour_keys[rows] = -1
                     neighbour_keys[rows, : found.shape[1]] = keys[found[exact]]
-                pending = pending[~exact]
-            if pending.size:
-                rest = queries[pending]
+                left = pending[~exact]
+            if left.size:
                 if enough:
                     radius = kth[~exact] * (1.0 + 1e-6) + 2.0 * _SAFETY_M
                 else:
-                    radius = np.full(pending.size, box[1] - box[0] + box[3] - box[2])
-                box = np.array(
-                    [
-                        (rest[:, 0] - radius).min(),
-                        (rest[:, 0] + radius).max(),
-                        (rest[:, 1] - radius).min(),
-                        (rest[:, 1] + radius).max(),
-                    ]
+                    radius = np.full(left.size, box[1] - box[0] + box[3] - box[2])
+                # after the first ask, one box a side of it: the queries left lie along
+                # its edges, and one box around them all held the whole first box again
+                sides = (
+                    _nearest_sides(queries[left], box)
+                    if pending is None
+                    else np.zeros(left.size, np.int64)
                 )
+                for side in np.unique(sides).tolist():
+                    chosen = sides == side
+                    asks.append((left[chosen], _ball_box(queries[left[chosen]], radius[chosen])))
         return out
 
     def _gather(
@@ -990,3 +996,25 @@ def _rows_across(
     high = min(max(math.floor(x_high / voxel_m) + 2 + CELL_OFFSET, 0), top)
     first, last = np.searchsorted(keys, [low << shift, high << shift])
     return int(first), int(last)
+
+
+def _nearest_sides(xy: NDArray[np.float64], box: NDArray[np.float64]) -> NDArray[np.int64]:
+    """Which side of ``box`` (``x_low, x_high, y_low, y_high``: 0-3) each point is nearest."""
+    distances = np.stack(
+        [xy[:, 0] - box[0], box[1] - xy[:, 0], xy[:, 1] - box[2], box[3] - xy[:, 1]], axis=1
+    )
+    sides: NDArray[np.int64] = np.argmin(distances, axis=1).astype(np.int64)
+    return sides
+
+
+def _ball_box(centres: NDArray[np.float64], radius: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The box (``x_low, x_high, y_low, y_high``) holding the discs of ``radius`` around
+    ``centres``."""
+    return np.array(
+        [
+            (centres[:, 0] - radius).min(),
+            (centres[:, 0] + radius).max(),
+            (centres[:, 1] - radius).min(),
+            (centres[:, 1] + radius).max(),
+        ]
+    )
