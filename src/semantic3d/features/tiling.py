@@ -107,6 +107,9 @@ parts' CPU time in a 10 M-point street scan's densest tile (levels 0-2 alike).""
 _BOUND_SAMPLE = 1 << 14
 """Queries sampled to place the parts' bounds."""
 
+_SIDE_PIECES = 4
+"""The queries a first ask leaves are asked again in this many boxes a side of it."""
+
 _SLACK_M = 1e-6
 """Points may sit this far outside their tile's edges (rounding of cell indices)."""
 
@@ -793,8 +796,9 @@ class TiledScan:
         neighbour lies beyond the halo's edge is asked again in a box containing the ball
         of that radius (the k-th distance within a subset bounds the true one), which is
         then exact; a subset with fewer than k points doubles the box. The queries left
-        by the first ask are asked again side by side: those nearest each side of its box
-        in a box of their own (a thin band along that side, not the first box again). With
+        by the first ask are asked again piece by piece: those nearest each piece of each
+        side of its box in a box of their own (a thin band along that piece, not the
+        first box again). With
         ``neighbour_keys`` (``(m, k)``), also the keys of every query's exact neighbours.
         The rows go to ``out`` (``(m, n_level_features)``, may be a column slice) when given.
         """
@@ -862,8 +866,8 @@ class TiledScan:
                     radius = kth[~exact] * (1.0 + 1e-6) + 2.0 * _SAFETY_M
                 else:
                     radius = np.full(left.size, box[1] - box[0] + box[3] - box[2])
-                # after the first ask, one box a side of it: the queries left lie along
-                # its edges, and one box around them all held the whole first box again
+                # after the first ask, a box a piece of each side of it: the queries left
+                # lie along its edges, and one box around them all held it all again
                 sides = (
                     _nearest_sides(queries[left], box)
                     if pending is None
@@ -999,12 +1003,19 @@ def _rows_across(
 
 
 def _nearest_sides(xy: NDArray[np.float64], box: NDArray[np.float64]) -> NDArray[np.int64]:
-    """Which side of ``box`` (``x_low, x_high, y_low, y_high``: 0-3) each point is nearest."""
+    """Which side of ``box`` (``x_low, x_high, y_low, y_high``: 0-3) each point is nearest,
+    and which of :data:`_SIDE_PIECES` equal pieces of that side: ``side * pieces + piece``
+    (a piece's few far-reaching queries do not widen the whole side's band)."""
     distances = np.stack(
         [xy[:, 0] - box[0], box[1] - xy[:, 0], xy[:, 1] - box[2], box[3] - xy[:, 1]], axis=1
     )
-    sides: NDArray[np.int64] = np.argmin(distances, axis=1).astype(np.int64)
-    return sides
+    sides = np.argmin(distances, axis=1).astype(np.int64)
+    along = np.where(sides < 2, xy[:, 1], xy[:, 0])  # the coordinate along the side
+    low = np.where(sides < 2, box[2], box[0])
+    length = np.maximum(np.where(sides < 2, box[3] - box[2], box[1] - box[0]), 1e-12)
+    piece = np.clip(np.floor((along - low) / length * _SIDE_PIECES), 0, _SIDE_PIECES - 1)
+    groups: NDArray[np.int64] = sides * _SIDE_PIECES + piece.astype(np.int64)
+    return groups
 
 
 def _ball_box(centres: NDArray[np.float64], radius: NDArray[np.float64]) -> NDArray[np.float64]:
