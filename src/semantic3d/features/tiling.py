@@ -734,11 +734,9 @@ class TiledScan:
         (its extent plus the first halo), so what one part runs alone another overlaps.
         Every row is exact whatever box it starts from: the same rows as in one piece.
 
-        Blocks, not strips: a part asks again, in one box around them all, the few
-        queries its first box could not vouch for, and these lie along its edges; a
-        strip's (two long edges across the whole tile) held the whole strip again, a
-        block's holds a block. And a box's halo is a smaller share of a square than of a
-        thin strip, which more threads make thinner."""
+        Blocks, not strips: a box's halo is a smaller share of a square than of a thin
+        strip, which more threads make thinner; and the queries a part asks again lie
+        along its edges, which for a strip cross the whole tile."""
         n_threads = thread_budget()
         n = queries.shape[0]
         n_parts = min(_PARTS_PER_THREAD * n_threads, n // _MIN_PART_QUERIES)
