@@ -25,13 +25,16 @@ files, in the same run:
   scan's labels 4 times over: ground truth and a prediction of it), label pairs per second.
 
 Each row gives the rate (items per second, wall clock), CPU seconds (and their ratio to
-the peer's, which a loaded machine disturbs less than wall time), the mean number of
-the process's threads running or ready to run while it worked (sampled every 2 ms: a
-load-independent view of how parallel it was) and the peer's rate at the same count. Per
-path, the Amdahl serial fraction ``s`` is fitted to the speed-ups over 1 thread (least
-squares on ``1/S(n) = s + (1 - s)/n``), with the speed-up it predicts on 16 threads; with
-only 1 and 2 threads (a 2-core machine) the fit is exact and the 16-thread figure a
-prediction. ``s`` is also estimated from the 2-thread run's thread samples (time with one
+the peer's, which a loaded machine disturbs less than wall time), the mean number of the
+process's threads running or ready to run while it worked (sampled every 2 ms: a
+load-independent view of how parallel it was), the peer's rate at the same count, the
+floor where a path must read files (``read_labels``, ``evaluate``: the same files read on
+the same threads in 32 MB positioned reads, nothing parsed; items per second at that
+speed, and the path's rate over it) and the SHA-256 of what ``simulate`` and ``predict``
+wrote (the same at every count, or a line says they differ). Per path, the Amdahl serial
+fraction ``s`` is fitted to the speed-ups over 1 thread (least squares on
+``1/S(n) = s + (1 - s)/n``), with the speed-up it predicts on 16 threads; with only 1 and
+2 threads (a 2-core machine) the fit is exact and the 16-thread figure a prediction. ``s`` is also estimated from the 2-thread run's thread samples (time with one
 thread running over the time one thread would take), which a loaded machine disturbs less
 than wall time. The load average is printed beside every row: compare rows of one run.
 ``--where`` also names the code that runs while at most a quarter of the threads do, at
@@ -43,6 +46,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import hashlib
 import json
 import os
 import subprocess
@@ -151,6 +155,46 @@ def _measure(run: Callable[[], int], few: int | None = None) -> dict[str, Any]:
     }
 
 
+def _digest(paths: list[Path]) -> str:
+    """SHA-256 of the files' bytes, one after the other (first 12 hex digits)."""
+    digest = hashlib.sha256()
+    for path in paths:
+        with path.open("rb") as stream:
+            while block := stream.read(1 << 24):
+                digest.update(block)
+    return digest.hexdigest()[:12]
+
+
+class _ReadFloor:
+    """The files' bytes read on ``n_threads`` threads in 32 MB positioned reads into each
+    thread's buffer, nothing parsed: the floor of a path that must read them. The threads
+    and their buffers outlive a call (the first call makes them), so a timed call reads
+    and does nothing else. A call returns ``items`` (what the path counts for the bytes)."""
+
+    BLOCK = 1 << 25
+
+    def __init__(self, paths: list[Path], n_threads: int, items: int) -> None:
+        from concurrent.futures import ThreadPoolExecutor
+
+        self.items = items
+        self.size = sum(path.stat().st_size for path in paths)
+        self.jobs = [(p, at) for p in paths for at in range(0, p.stat().st_size, self.BLOCK)]
+        self.pool = ThreadPoolExecutor(max_workers=n_threads)
+        self.local = threading.local()
+
+    def _read(self, job: tuple[Path, int]) -> int:
+        buffer = getattr(self.local, "buffer", None)
+        if buffer is None:
+            buffer = self.local.buffer = bytearray(self.BLOCK)
+        with job[0].open("rb", buffering=0) as stream:
+            return os.preadv(stream.fileno(), [buffer], job[1])
+
+    def __call__(self) -> int:
+        if sum(self.pool.map(self._read, self.jobs)) != self.size:
+            raise SystemExit("the floor read fewer bytes than the files hold")
+        return self.items
+
+
 def _pyarrow_rows(path: Path, n_threads: int, columns: list[str]) -> int:
     import pyarrow as pa
     import pyarrow.csv as pacsv
@@ -173,15 +217,15 @@ def child(job: dict[str, Any]) -> dict[str, Any]:
     set_thread_limit(n)
     path, work = job["path"], Path(job["work"])
     scan = Path(job["scan"])
+    outputs: list[Path] = []  # files the measured runs wrote, digested after them
+    floor: Callable[[], int] | None = None  # the reads a path cannot do without, alone
     if path == "iter_points":
         from semantic3d.io import iter_ascii_points
 
         def run() -> int:
             return sum(chunk.n_points for chunk in iter_ascii_points(scan))
 
-        run_small: Callable[[], int] | None = lambda: sum(  # noqa: E731
-            c.n_points for c in iter_ascii_points(Path(job["small"]))
-        )
+        run_small: Callable[[], int] | None = None  # the warm-up reads the scan (cached pages)
         peer: Callable[[], int] | None = lambda: _pyarrow_rows(scan, n, list("xyzirgb"))  # noqa: E731
     elif path == "read_labels":
         from semantic3d.io import read_labels
@@ -191,14 +235,18 @@ def child(job: dict[str, Any]) -> dict[str, Any]:
         def run() -> int:
             return int(read_labels(labels).size)
 
-        run_small = lambda: int(read_labels(Path(job["small"]).with_suffix(".labels")).size)  # noqa: E731
+        run_small = None  # a small file is parsed by numpy: the warm-up reads the large one
         peer = lambda: _pyarrow_rows(labels, n, ["label"])  # noqa: E731
+        floor = _ReadFloor([labels], n, labels.stat().st_size // 2)
     elif path == "simulate":
         from semantic3d.datasets.simulator import simulate
 
         def run() -> int:
-            out = work / f"simulate{n}"
-            return simulate("street", out=out, n_points=int(job["points"]), seed=2).n_points
+            made = simulate(
+                "street", out=work / f"simulate{n}", n_points=int(job["points"]), seed=2
+            )
+            outputs.extend(p for scan in made.scans for p in (scan.points_path, scan.labels_path))
+            return made.n_points
 
         run_small = lambda: simulate("street", out=work / f"warm{n}", n_points=20_000).n_points  # noqa: E731
         peer = None
@@ -210,6 +258,7 @@ def child(job: dict[str, Any]) -> dict[str, Any]:
 
         def run() -> int:
             out = work / f"predict{n}.labels"
+            outputs.append(out)
             return predict_scan(model, scan, out_path=out, workdir=work, overwrite=True).n_points
 
         def run_small() -> int:
@@ -248,6 +297,8 @@ def child(job: dict[str, Any]) -> dict[str, Any]:
 
         run_small = None
         peer = None
+        pairs = sorted(truth.glob("*.labels")) + sorted(predicted.glob("*.labels"))
+        floor = _ReadFloor(pairs, n, 4 * N_EVALUATED_SCANS * int(job["scan_points"]))
     else:
         raise SystemExit(f"unknown path {path}")
     if run_small is not None:
@@ -256,10 +307,17 @@ def child(job: dict[str, Any]) -> dict[str, Any]:
         run()
     repeat = max(1, int(job.get("repeat", 1)))
     few = job.get("few")
-    result = {"ours": min((_measure(run, few) for _ in range(repeat)), key=lambda m: m["wall_s"])}
+    result: dict[str, Any] = {
+        "ours": min((_measure(run, few) for _ in range(repeat)), key=lambda m: m["wall_s"])
+    }
+    if outputs:  # the last run's files: the same digest at every thread count
+        result["digest"] = _digest(sorted(set(outputs)))
     if peer is not None:
         peer()
         result["peer"] = min((_measure(peer) for _ in range(repeat)), key=lambda m: m["wall_s"])
+    if floor is not None:
+        floor()
+        result["floor"] = min((_measure(floor) for _ in range(repeat)), key=lambda m: m["wall_s"])
     return result
 
 
@@ -402,7 +460,8 @@ def main() -> None:
         shared = _prepare(args, work)
         header = (
             f"{'path':<12} {'thr':>3} {'M items/s':>10} {'wall s':>8} {'CPU s':>8} "
-            f"{'running':>7} {'peer M/s':>9} {'x peer':>7} {'CPU/peer':>8} {'load':>5}"
+            f"{'running':>7} {'peer M/s':>9} {'x peer':>7} {'CPU/peer':>8} {'floor M/s':>9} "
+            f"{'x floor':>7} {'load':>5} output sha256"
         )
         print(header)
         for path in args.paths:
@@ -432,6 +491,13 @@ def main() -> None:
                         for key in ("items", "wall_s", "cpu_s", "running", "load", "few_running")
                     },
                 }
+                floor = result.get("floor")
+                floor_rate = floor["items"] / floor["wall_s"] if floor else None
+                if floor:
+                    row["floor_rate"] = floor_rate
+                    row["floor_wall_s"] = floor["wall_s"]
+                if "digest" in result:
+                    row["digest"] = result["digest"]
                 if peer:
                     row["peer_wall_s"] = peer["wall_s"]
                     row["peer_cpu_s"] = peer["cpu_s"]
@@ -442,9 +508,14 @@ def main() -> None:
                     f"{'' if peer_rate is None else f'{peer_rate / 1e6:9.3f}':>9} "
                     f"{'' if peer_rate is None else f'{rate / peer_rate:7.2f}':>7} "
                     f"{'' if cpu_ratio is None else f'{cpu_ratio:8.2f}':>8} "
-                    f"{ours['load']:>5.2f}",
+                    f"{'' if floor_rate is None else f'{floor_rate / 1e6:9.1f}':>9} "
+                    f"{'' if floor_rate is None else f'{rate / floor_rate:7.2f}':>7} "
+                    f"{ours['load']:>5.2f} {row.get('digest', '')}",
                     flush=True,
                 )
+            digests = {r["digest"] for r in rows if r["path"] == path and "digest" in r}
+            if len(digests) > 1:
+                print(f"{path}: the outputs differ between thread counts: {sorted(digests)}")
             speedups = {n: rates[n] / rates[counts[0]] for n in counts} if counts[0] == 1 else {}
             s = amdahl(speedups)
             two = next((r for r in rows if r["path"] == path and r["threads"] == 2), None)
@@ -463,7 +534,9 @@ def main() -> None:
         if s is None:
             continue
         print(
-            f"{path:<12} s = {s:.3f} (thread samples: {p:.3f}); speed-ups "
+            f"{path:<12} s = {s:.3f} (thread samples: "
+            + ("-" if p is None else f"{p:.3f}")
+            + "); speed-ups "
             + ", ".join(f"{n}: {v:.2f}" for n, v in fit["speedups"].items())
             + f"; on 16 threads {fit['predicted_speedup_16']:.1f}x, "
             f"{fit['predicted_rate_16'] / 1e6:.3f} M/s"
