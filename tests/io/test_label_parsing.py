@@ -62,14 +62,57 @@ def test_numpy_parse_lines_equals_the_kernel(
     )
 
 
-@settings(max_examples=40, deadline=None)
-@given(data=st.lists(st.sampled_from(["1\n", "8\n", "0\n", "x\n", "12", "1\r"]), max_size=30))
-def test_numpy_single_digit_check_equals_the_kernel(data: list[str]) -> None:
-    block = np.frombuffer("".join(data).encode(), np.uint8)
-    block = block[: block.size - block.size % 2]
-    fast, compiled = np.empty(block.size // 2, np.uint8), np.empty(block.size // 2, np.uint8)
-    assert parsing.parse_single_digit(block, fast) == kernels.parse_single_digit(block, compiled)
+_PAIRS = ["1\n", "8\n", "0\n", "9\n", "x\n", "12", "1\r", "/\n", ":\n", "0\x0b", "0\t"]
+
+
+@settings(max_examples=80, deadline=None)
+@given(
+    data=st.lists(
+        st.sampled_from(_PAIRS).map(str.encode) | st.binary(min_size=2, max_size=2), max_size=30
+    ),
+    offset=st.integers(0, 1),
+)
+def test_numpy_single_digit_check_equals_the_kernel(data: list[bytes], offset: int) -> None:
+    """The kernel reads a line as one 16-bit word: the same count of malformed pairs and
+    the same values as the byte pairs, for any bytes (digits' neighbours ``/`` and ``:``,
+    line ends' neighbours), from an odd address too."""
+    raw = np.frombuffer(b"#" * offset + b"".join(data), np.uint8)[offset:]
+    fast, compiled = np.empty(raw.size // 2, np.uint8), np.full(raw.size // 2, 77, np.uint8)
+    expected = parsing.parse_single_digit(raw, fast)
+    assert expected == sum(not (48 <= pair[0] <= 57 and pair[1] == 10) for pair in data)
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(parsing, "SMALL_TEXT_BYTES", -1)  # to the kernel
+        assert parsing.parse_single_digit(raw, compiled) == expected
     assert fast.tolist() == compiled.tolist()
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    start=st.integers(0, 3),
+    low=st.integers(0, 3),
+    high=st.sampled_from([5, 8, 9, 255]),
+    odd=st.lists(
+        st.tuples(st.integers(0, 3 * kernels._WINDOW), st.sampled_from(["x", "12", "\r", ""])),
+        max_size=3,
+    ),
+    final=st.booleans(),
+)
+def test_windows_of_single_digit_lines_parse_as_numpy_does(
+    seed: int, start: int, low: int, high: int, odd: list[tuple[int, str]], final: bool
+) -> None:
+    """Texts long enough for the kernel's windows of ``d\n`` lines (read as 16-bit words,
+    from odd offsets too), with digits out of ``low..high`` and lines of other shapes
+    inside windows: the same values, problems and positions as the numpy parser."""
+    lines = [str(d) for d in np.random.default_rng(seed).integers(0, 10, 3 * kernels._WINDOW + 7)]
+    for at, text in odd:
+        lines[at] = text
+    data = ("\n".join(lines) + "\n").encode()
+    room = len(lines) + 2
+    args = (start, 0, room, low, high)
+    assert _run(parsing._parse_lines_numpy, data, args, final, False) == _run(
+        kernels.parse_lines, data, args, final, False
+    )
 
 
 def _outcome(path: Path) -> object:

@@ -52,7 +52,8 @@ def parse_single_digit(block: np.ndarray, out: np.ndarray) -> int:
     ``block`` has an even length; ``out`` has ``len(block) // 2`` entries.
     """
     if not _use_numpy(block.size):
-        return int(_kernels().parse_single_digit(block, out))
+        words = np.ascontiguousarray(block).view(np.uint16)  # a line a word
+        return int(_kernels().parse_single_digit(words, out))
     digits = block[0::2] - np.uint8(48)
     out[:] = digits
     return int(np.count_nonzero((digits > 9) | (block[1::2] != 10)))
