@@ -101,7 +101,7 @@ def test_numpy_single_digit_check_equals_the_kernel(data: list[bytes], offset: i
 def test_windows_of_single_digit_lines_parse_as_numpy_does(
     seed: int, start: int, low: int, high: int, odd: list[tuple[int, str]], final: bool
 ) -> None:
-    """Texts long enough for the kernel's windows of ``d\n`` lines (read as 16-bit words,
+    """Texts long enough for the kernel's windows of ``d\\n`` lines (read as 16-bit words,
     from odd offsets too), with digits out of ``low..high`` and lines of other shapes
     inside windows: the same values, problems and positions as the numpy parser."""
     lines = [str(d) for d in np.random.default_rng(seed).integers(0, 10, 3 * kernels._WINDOW + 7)]

@@ -16,7 +16,7 @@ Two parsers, one format:
   zip members), and :mod:`semantic3d.io.labels` falls back to it for blocks the fast
   path rejects.
 
-Both read a ``d\n`` line as one 16-bit little-endian word (the byte order of every
+Both read a ``d\\n`` line as one 16-bit little-endian word (the byte order of every
 platform numba compiles for).
 
 Small texts do not come here: :mod:`semantic3d.io._label_parsing` parses them with numpy
@@ -46,15 +46,15 @@ _MAX_BACKOFF = 1 << 20  # most lines parsed one by one before trying a window ag
 
 
 _PAIR_ZERO = 0x0A30
-"""``"0\n"`` read as one little-endian 16-bit word: ``'0'`` (0x30) low, ``'\n'`` (0x0A) high."""
+"""``"0\\n"`` read as one little-endian 16-bit word: ``'0'`` (0x30) low, ``'\\n'`` (0x0A) high."""
 
 
 @nb.njit(cache=True, nogil=True, parallel=True)
 def parse_single_digit(words: np.ndarray, out: np.ndarray) -> int:
-    """Fast path for ``d\n`` lines: fill ``out`` and return the number of malformed pairs.
+    """Fast path for ``d\\n`` lines: fill ``out`` and return the number of malformed pairs.
 
     ``words`` is the block as little-endian 16-bit words, a line each; ``out`` has as many
-    entries. A word minus ``"0\n"`` is 0..9 exactly when the line is a digit and a line
+    entries. A word minus ``"0\\n"`` is 0..9 exactly when the line is a digit and a line
     end, and its low byte is the digit byte minus ``'0'`` in any case: one subtraction and
     one comparison a line, on contiguous words (vectorised, unlike byte pairs read with a
     stride of two: 4x the rate of that loop here).
@@ -75,7 +75,7 @@ def _parse_window(
     """Parse ``_WINDOW`` ``d\n`` lines at ``buf[i]`` into ``out[n]``; False if any is not.
 
     Each line read as one 16-bit word, as :func:`parse_single_digit` does (from any
-    address: ``i`` may be odd); the word minus ``"0\n"`` is the digit, and the line is one
+    address: ``i`` may be odd); the word minus ``"0\\n"`` is the digit, and the line is one
     of ``lowest..lowest + span`` exactly when that difference less ``lowest`` is at most
     ``span``. Branch-free, so LLVM vectorises it (2.5x the rate of byte pairs read with a
     stride of two); a function of its own because inlined into :func:`parse_lines` it
