@@ -34,9 +34,10 @@ speed, and the path's rate over it) and the SHA-256 of what ``simulate`` and ``p
 wrote (the same at every count, or a line says they differ). Per path, the Amdahl serial
 fraction ``s`` is fitted to the speed-ups over 1 thread (least squares on
 ``1/S(n) = s + (1 - s)/n``), with the speed-up it predicts on 16 threads; with only 1 and
-2 threads (a 2-core machine) the fit is exact and the 16-thread figure a prediction. ``s`` is also estimated from the 2-thread run's thread samples (time with one
-thread running over the time one thread would take), which a loaded machine disturbs less
-than wall time. The load average is printed beside every row: compare rows of one run.
+2 threads (a 2-core machine) the fit is exact and the 16-thread figure a prediction. ``s``
+is also estimated from the 2-thread run's thread samples (time with one thread running
+over the time one thread would take), which a loaded machine disturbs less than wall
+time. The load average is printed beside every row: compare rows of one run.
 ``--where`` also names the code that runs while at most a quarter of the threads do, at
 the largest thread count: the serial parts to remove next.
 Writes ``benchmarks/out/bench_scaling.json``.
