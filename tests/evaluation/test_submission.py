@@ -403,8 +403,17 @@ def test_member_cap_is_checked_before_the_index_is_built(
         assert problems == (f"archive holds {count} members, more than the limit of 10000",)
     else:  # the end record understates the count: the walk stops at the 10,001st entry
         assert problems == ("archive holds more than 10000 members, more than the limit of 10000",)
-    assert cpu_s < 0.3, f"{cpu_s:.2f} s CPU"
     assert peak_mb < 12, f"{peak_mb:.1f} MB traced"
+    # What building the index costs in this process, measured the same way.
+    tracemalloc.start()
+    started = time.process_time()
+    try:
+        with zipfile.ZipFile(path) as archive:
+            assert len(archive.infolist()) == 100_000
+        index_cpu_s = time.process_time() - started
+    finally:
+        tracemalloc.stop()
+    assert cpu_s < 0.25 * index_cpu_s, f"{cpu_s:.3f} s CPU; the index {index_cpu_s:.3f} s"
 
 
 def test_oversized_central_directory_is_refused_unread(scans: Scans, tmp_path: Path) -> None:
