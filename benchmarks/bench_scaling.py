@@ -39,7 +39,11 @@ is also estimated from the 2-thread run's thread samples (time with one thread r
 over the time one thread would take), which a loaded machine disturbs less than wall
 time. The load average is printed beside every row: compare rows of one run.
 ``--where`` also names the code that runs while at most a quarter of the threads do, at
-the largest thread count: the serial parts to remove next.
+the largest thread count: the serial parts to remove next. ``--timeline`` records one more
+``predict`` run at the largest count on a timeline (:mod:`semantic3d.core.timeline`: the
+spill, each tile's pyramid, features, forest and cut, every square of the cuts, the
+labels written) and prints what ran after the last tile started: which tiles' chains of
+steps the other threads waited for. The spans go to ``bench_scaling_timeline.json``.
 Writes ``benchmarks/out/bench_scaling.json``.
 """
 
@@ -314,6 +318,15 @@ def child(job: dict[str, Any]) -> dict[str, Any]:
     }
     if outputs:  # the last run's files: the same digest at every thread count
         result["digest"] = _digest(sorted(set(outputs)))
+    if job.get("timeline"):  # one more run, its steps on a timeline
+        from semantic3d.core.timeline import recording
+
+        with recording() as timeline:
+            run()
+        result["timeline"] = {
+            "end_s": timeline.end_s,
+            "spans": [step.to_dict() for step in timeline.spans],
+        }
     if peer is not None:
         peer()
         result["peer"] = min((_measure(peer) for _ in range(repeat)), key=lambda m: m["wall_s"])
@@ -426,6 +439,84 @@ def _prepare(args: argparse.Namespace, work: Path) -> dict[str, Any]:
     }
 
 
+def _open_at(spans: list[dict[str, Any]], t: float) -> list[dict[str, Any]]:
+    return [step for step in spans if step["start_s"] <= t < step["end_s"]]
+
+
+def _print_timeline(timeline: dict[str, Any], n: int) -> None:
+    """What a ``predict`` run's steps took, and what the threads waited for at its end."""
+    spans: list[dict[str, Any]] = timeline["spans"]
+    end = float(timeline["end_s"])
+    print(f"\nTimeline of one predict run on {n} threads: {end:.2f} s")
+    print(
+        f"{'step':<12} {'count':>6} {'first s':>8} {'last end':>8} {'wall sum':>9} "
+        f"{'CPU sum':>8} {'longest':>8}"
+    )
+    for name in dict.fromkeys(step["name"] for step in spans):
+        steps = [step for step in spans if step["name"] == name]
+        walls = [step["end_s"] - step["start_s"] for step in steps]
+        print(
+            f"{name:<12} {len(steps):>6} {min(s['start_s'] for s in steps):>8.2f} "
+            f"{max(s['end_s'] for s in steps):>8.2f} {sum(walls):>9.2f} "
+            f"{sum(s['cpu_s'] for s in steps):>8.2f} {max(walls):>8.2f}"
+        )
+    tiles = [step for step in spans if step["name"] == "tile"]
+    if not tiles:
+        return
+    first = min(t["start_s"] for t in tiles)
+    last_start = max(t["start_s"] for t in tiles)
+    last_end = max(t["end_s"] for t in tiles)
+    print(
+        f"tiles: {len(tiles)} from {first:.2f} s; the last started at {last_start:.2f} s, "
+        f"the last ended at {last_end:.2f} s: {last_end - last_start:.2f} s "
+        f"({(last_end - last_start) / max(end, 1e-9):.0%} of the run) with no tile waiting"
+    )
+    slices = 16
+    step_s = max(last_end - first, 1e-9) / slices
+    print("open at each sixteenth of the tiles' time (tiles / cut squares / features):")
+    print(
+        "  "
+        + " ".join(
+            f"{len(_open_at(tiles, first + (k + 0.5) * step_s))}"
+            f"/{len(_open_at([s for s in spans if s['name'] == 'cut square'], first + (k + 0.5) * step_s))}"
+            f"/{len(_open_at([s for s in spans if s['name'] == 'features'], first + (k + 0.5) * step_s))}"
+            for k in range(slices)
+        )
+    )
+    children: dict[int, list[dict[str, Any]]] = {}
+    for step in spans:
+        children.setdefault(step["parent"], []).append(step)
+
+    def below(number: int) -> list[dict[str, Any]]:
+        found = []
+        for child in children.get(number, []):
+            found.append(child)
+            found.extend(below(child["number"]))
+        return found
+
+    print("the tiles still running when the last one started (start, end: seconds):")
+    for tile in sorted(_open_at(tiles, last_start), key=lambda t: -t["end_s"])[:8]:
+        steps = below(tile["number"])
+        parts = []
+        for name in ("features", "forest", "cut"):
+            mine = [s for s in steps if s["name"] == name]
+            if mine:
+                parts.append(f"{name} {mine[0]['start_s']:.2f}-{mine[0]['end_s']:.2f}")
+        squares = [s for s in steps if s["name"] == "cut square"]
+        if squares:
+            longest = max(squares, key=lambda s: s["end_s"] - s["start_s"])
+            parts.append(
+                f"{len(squares)} squares on {len({s['thread'] for s in squares})} threads, "
+                f"the longest {longest['end_s'] - longest['start_s']:.2f} s "
+                f"({longest['attrs'].get('rows')} rows)"
+            )
+        print(
+            f"  tile {tile['attrs'].get('tile')}: {tile['attrs'].get('points'):,} points, "
+            f"{tile['attrs'].get('threads')} threads, {tile['start_s']:.2f}-{tile['end_s']:.2f}: "
+            + "; ".join(parts)
+        )
+
+
 def _print_where(rows: list[dict[str, Any]], n: int) -> None:
     few = max(1, n // 4)
     print(f"\nWhere at most {few} of {n} threads ran (share of all samples; one line a thread)")
@@ -455,6 +546,12 @@ def main() -> None:
         help="Also name the code running while at most a quarter of the threads do "
         "(at least one), for the largest thread count.",
     )
+    parser.add_argument(
+        "--timeline",
+        action="store_true",
+        help="Record one more predict run at the largest thread count on a timeline and "
+        "say what ran after the last tile started.",
+    )
     args = parser.parse_args()
     if args.child:
         print(json.dumps(child(json.loads(args.child))))
@@ -472,6 +569,7 @@ def main() -> None:
     )
     rows: list[dict[str, Any]] = []
     summary: dict[str, dict[str, Any]] = {}
+    timelines: dict[int, dict[str, Any]] = {}
     with tempfile.TemporaryDirectory(prefix="bench-scaling-", dir=args.workdir) as scratch:
         work = Path(scratch)
         shared = _prepare(args, work)
@@ -487,7 +585,11 @@ def main() -> None:
                 job = {**shared, "path": path, "threads": n, "repeat": args.repeat}
                 if args.where and n == counts[-1]:
                     job["few"] = max(1, n // 4)
+                if args.timeline and path == "predict" and n == counts[-1]:
+                    job["timeline"] = True
                 result = _run_child(job)
+                if "timeline" in result:
+                    timelines[n] = result["timeline"]
                 ours = result["ours"]
                 rate = ours["items"] / ours["wall_s"]
                 rates[n] = rate
@@ -561,6 +663,12 @@ def main() -> None:
     if args.where:
         _print_where(rows, counts[-1])
     OUT.mkdir(parents=True, exist_ok=True)
+    for n, timeline in timelines.items():
+        _print_timeline(timeline, n)
+        (OUT / "bench_scaling_timeline.json").write_text(
+            json.dumps({"threads": n, **timeline}) + "\n"
+        )
+        print(f"wrote {OUT / 'bench_scaling_timeline.json'}")
     report = {
         "cores": cores,
         "points": args.points,

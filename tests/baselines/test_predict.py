@@ -18,6 +18,7 @@ from semantic3d.baselines.covariance.training import (
     fit_model,
 )
 from semantic3d.core.errors import GroundTruthOutputError, OutputExistsError
+from semantic3d.core.timeline import Span, recording
 from semantic3d.features import FeatureConfig
 from semantic3d.io.ascii import read_ascii_points
 from semantic3d.io.labels import read_labels
@@ -59,6 +60,43 @@ def test_tiled_prediction_equals_in_memory_prediction(
     # the labels follow the input's point order: same as labelling the cloud in memory
     np.testing.assert_array_equal(predict_cloud(model, read_ascii_points(scan)), expected)
     assert not any(p.name.startswith("s3d-") for p in tmp_path.iterdir())  # scratch removed
+
+
+def test_a_tiled_prediction_marks_its_steps_on_a_timeline_and_labels_the_same(
+    model: CovarianceModel, scene_dir: Path, tmp_path: Path
+) -> None:
+    tiled = _with_prediction(model, max_points_in_memory=0, tile_size_m=6.4)
+    context = dataclasses.replace(tiled.config.context, max_graph_nodes=200)
+    tiled = dataclasses.replace(tiled, config=dataclasses.replace(tiled.config, context=context))
+    scan = scene_dir / "test.txt"
+    plain = predict_scan(tiled, scan, out_path=tmp_path / "a.labels", workdir=tmp_path)
+    with recording() as timeline:
+        marked = predict_scan(tiled, scan, out_path=tmp_path / "b.labels", workdir=tmp_path)
+    np.testing.assert_array_equal(read_labels(marked.labels_path), read_labels(plain.labels_path))
+    spans = timeline.spans
+    by_number = {s.number: s for s in spans}
+
+    def tile_of(step: Span) -> Span | None:
+        while step.parent != -1:
+            step = by_number[step.parent]
+        return step if step.name == "tile" else None
+
+    (spill,) = timeline.named("spill")
+    tiles = timeline.named("tile")
+    assert spill.attrs["points"] == marked.n_points and spill.attrs["tiles"] == len(tiles) > 1
+    assert sum(t.attrs["points"] for t in tiles) == marked.n_points
+    assert len(timeline.named("pyramid")) == len(tiles)
+    assert all(spill.end_s <= p.start_s for p in timeline.named("pyramid"))
+    for step in ("features", "forest", "cut"):
+        inside = [s for s in timeline.named(step) if tile_of(s) is not None]
+        assert len(inside) == len(tiles), step  # each tile's own, on its thread
+    squares = timeline.named("cut square")
+    assert squares and all(tile_of(s) is not None for s in squares)
+    assert max(s.attrs["rows"] for s in squares) <= 200  # the tiles' graphs cut in squares
+    (written,) = timeline.named("write labels")
+    assert written.attrs["points"] == marked.n_points
+    assert max(t.end_s for t in tiles) <= written.start_s
+    assert sum(s.attrs["points"] for s in timeline.named("put labels")) == marked.n_points
 
 
 def test_sidecar_records_time_and_hardware(

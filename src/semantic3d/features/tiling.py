@@ -49,6 +49,7 @@ from semantic3d.core.threads import (
     take_free_threads,
     thread_budget,
 )
+from semantic3d.core.timeline import span
 from semantic3d.features._row_kernels import (
     exact_rows,
     put_rows,
@@ -290,7 +291,9 @@ class TiledScan:
         ahead = iter_ahead(
             chain([first], stream), consumer_threads=max(1, thread_budget() // 3), name="s3d-spill"
         )
-        store = build_tile_store(ahead, self.workdir / "points", grid=grid)
+        with span("spill") as attrs:
+            store = build_tile_store(ahead, self.workdir / "points", grid=grid)
+            attrs.update(points=store.n_points, tiles=len(store.tiles))
         logger.info("spilled %d points into %d tiles", store.n_points, len(store.tiles))
         return store
 
@@ -332,6 +335,10 @@ class TiledScan:
     def _build_pyramid(self, tile: Tile, n_threads: int = 1) -> list[int]:
         """Build a tile's pyramid and write it (or keep it in memory, within bounds, when
         the pass runs on ``n_threads`` > 1); return its level sizes."""
+        with span("pyramid", tile=[int(v) for v in tile], points=int(self.store.count(tile))):
+            return self._build_pyramid_of(tile, n_threads)
+
+    def _build_pyramid_of(self, tile: Tile, n_threads: int) -> list[int]:
         config = self.config
         points = self._load_points(tile).copied()  # contiguous, copied on every thread
         pyramid = build_pyramid(
@@ -514,9 +521,11 @@ class TiledScan:
         def compute(number: int) -> None:
             if not config.per_point:
                 take_free_threads()  # the last levels go on with the threads others left
-                self._whole_level(number)
+                with span("whole level", level=number):
+                    self._whole_level(number)
             take_free_threads()
-            self._first_halo_m(number)
+            with span("first halo", level=number):
+                self._first_halo_m(number)
 
         for _ in map_in_threads(
             compute,
@@ -555,8 +564,15 @@ class TiledScan:
             return math.ceil(n_threads * self.store.count(tile) / total)
 
         def task(tile: Tile) -> tuple[bool, R | None]:
-            features = self.tile_features(tile, select=wanted)
-            return (False, None) if features is None else (True, function(features))
+            with span(
+                "tile",
+                tile=[int(v) for v in tile],
+                points=int(self.store.count(tile)),
+                threads=threads_of(tile),
+            ):
+                with span("features"):
+                    features = self.tile_features(tile, select=wanted)
+                return (False, None) if features is None else (True, function(features))
 
         self._cache_scale = n_threads
         try:

@@ -44,6 +44,7 @@ from semantic3d.baselines.common.submission import (
 from semantic3d.core.errors import Semantic3DError, ShapeError
 from semantic3d.core.pointcloud import PointCloud
 from semantic3d.core.threads import numba_threads, thread_budget
+from semantic3d.core.timeline import span
 
 __all__ = [
     "LabelledBlock",
@@ -161,7 +162,8 @@ def predict_scan(
                 for block in predictor.iter_labelled_blocks(chunks, workdir=scratch_dir):
                     tiled = tiled or block.tiled
                     n_points = block.n_scan_points
-                    buffer.put(block.point_indices, block.labels, n_points)
+                    with span("put labels", points=block.point_indices.size):
+                        buffer.put(block.point_indices, block.labels, n_points)
                     done += block.point_indices.size
                     if progress is not None:
                         progress(done, n_points)
@@ -172,7 +174,8 @@ def predict_scan(
                     f"{points_path}: expected a label for each of {n_points} points, found {done}"
                 )
             out.parent.mkdir(parents=True, exist_ok=True)
-            written = write_labels(out, buffer.iter_chunks(chunk_size))
+            with span("write labels", points=n_points):
+                written = write_labels(out, buffer.iter_chunks(chunk_size))
     run = PredictionRun(
         scan=str(points_path),
         labels_path=str(out),

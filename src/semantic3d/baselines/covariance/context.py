@@ -31,6 +31,7 @@ from semantic3d.core.threads import (
     take_free_threads,
     thread_budget,
 )
+from semantic3d.core.timeline import span
 from semantic3d.spatial.grid import quadtree_leaf_table
 
 __all__ = [
@@ -379,17 +380,18 @@ def label_rows_by_group(
 
     def label_group(number: int) -> NDArray[np.int64]:
         rows = order[bounds[number] : bounds[number + 1]]  # ascending: the group's order
-        if edges is None or edge_bounds is None:
-            return label_rows(
-                proba[rows],
-                None if row_xyz is None else row_xyz[rows],
-                potts_weight=potts_weight,
-                n_neighbours=n_neighbours,
-                max_sweeps=max_sweeps,
-            )
-        group_edges = edges[edge_bounds[number] : edge_bounds[number + 1]]
-        unary = unary_costs(proba[rows])  # in the group's task: on its thread
-        return alpha_expansion(unary, group_edges, weight=potts_weight, max_sweeps=max_sweeps)
+        with span("cut square", rows=rows.size):
+            if edges is None or edge_bounds is None:
+                return label_rows(
+                    proba[rows],
+                    None if row_xyz is None else row_xyz[rows],
+                    potts_weight=potts_weight,
+                    n_neighbours=n_neighbours,
+                    max_sweeps=max_sweeps,
+                )
+            group_edges = edges[edge_bounds[number] : edge_bounds[number + 1]]
+            unary = unary_costs(proba[rows])  # in the group's task: on its thread
+            return alpha_expansion(unary, group_edges, weight=potts_weight, max_sweeps=max_sweeps)
 
     take_free_threads()  # in a map's last tasks: the threads the others left
     # groups cut at the same time (the cuts release the GIL); each group's labels alone.

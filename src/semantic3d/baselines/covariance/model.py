@@ -26,6 +26,7 @@ from semantic3d.baselines.covariance.forest import CompiledClassifier
 from semantic3d.core.errors import ShapeError
 from semantic3d.core.pointcloud import PointCloud
 from semantic3d.core.threads import take_free_threads
+from semantic3d.core.timeline import span
 from semantic3d.features.multiscale import FeatureTable
 from semantic3d.features.pyramid import grid_origin
 from semantic3d.spatial.grid import TileGrid
@@ -236,7 +237,8 @@ class CovarianceModel:
         if values.shape[0] == 0:
             return np.empty(0, np.uint8)
         take_free_threads()  # in a map's last tasks: the threads the others left
-        proba = self.classifier.compiled_.predict_proba(values)
+        with span("forest", rows=values.shape[0]):
+            proba = self.classifier.compiled_.predict_proba(values)
         classes = np.asarray(self.classifier.classes_, dtype=np.uint8)
         context = self.context
         graph = row_xyz is not None or lists_suffice(neighbours, context.n_neighbours)
@@ -245,17 +247,18 @@ class CovarianceModel:
         if not graph or not context.enabled:
             columns = np.argmax(proba, axis=1)
         else:  # a tile's groups on its task's threads; one group alone on one thread
-            columns = label_rows_by_group(
-                proba,
-                None if row_xyz is None else np.asarray(row_xyz, dtype=np.float64),
-                np.zeros(proba.shape[0], np.int64) if row_tile is None else row_tile,
-                potts_weight=context.potts_weight,
-                n_neighbours=context.n_neighbours,
-                max_sweeps=context.max_sweeps,
-                neighbours=neighbours,
-                row_cell=row_cell,
-                max_group_rows=context.max_graph_nodes,
-            )
+            with span("cut", rows=proba.shape[0]):
+                columns = label_rows_by_group(
+                    proba,
+                    None if row_xyz is None else np.asarray(row_xyz, dtype=np.float64),
+                    np.zeros(proba.shape[0], np.int64) if row_tile is None else row_tile,
+                    potts_weight=context.potts_weight,
+                    n_neighbours=context.n_neighbours,
+                    max_sweeps=context.max_sweeps,
+                    neighbours=neighbours,
+                    row_cell=row_cell,
+                    max_group_rows=context.max_graph_nodes,
+                )
         labels: NDArray[np.uint8] = classes[columns]
         return labels
 
