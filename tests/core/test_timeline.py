@@ -30,13 +30,12 @@ def test_nothing_is_recorded_outside_a_recording() -> None:
 
 
 def test_spans_nest_on_their_thread_and_carry_what_the_block_adds() -> None:
-    with recording() as timeline:
-        with span("tile", tile=[1, 2]) as tile:
-            with span("features"):
-                _busy(0.02)
-            with span("forest", rows=10) as forest:
-                forest["classes"] = 8
-            tile["done"] = True
+    with recording() as timeline, span("tile", tile=[1, 2]) as tile:
+        with span("features"):
+            _busy(0.02)
+        with span("forest", rows=10) as forest:
+            forest["classes"] = 8
+        tile["done"] = True
     by_name = {s.name: s for s in timeline.spans}
     assert [s.name for s in timeline.spans] == ["tile", "features", "forest"]
     outer = by_name["tile"]
@@ -52,9 +51,8 @@ def test_spans_nest_on_their_thread_and_carry_what_the_block_adds() -> None:
 
 def test_spans_of_every_thread_are_kept_with_their_own_parents_and_cpu() -> None:
     def work(number: int) -> None:
-        with span("tile", number=number):
-            with span("cut square"):
-                _busy(0.01 * (number + 1))
+        with span("tile", number=number), span("cut square"):
+            _busy(0.01 * (number + 1))
 
     with recording() as timeline, ThreadPoolExecutor(4, thread_name_prefix="worker") as pool:
         list(pool.map(work, range(8)))
@@ -81,12 +79,10 @@ def test_a_span_that_raises_is_kept_and_the_error_passes() -> None:
 
 
 def test_one_recording_at_a_time() -> None:
-    with recording(), pytest.raises(RuntimeError, match="already being recorded"):
-        with recording():
-            pass
-    with recording() as again:  # the first one ended: a new one may start
-        with span("x"):
-            pass
+    with recording(), pytest.raises(RuntimeError, match="already being recorded"), recording():
+        pass
+    with recording() as again, span("x"):  # the first one ended: a new one may start
+        pass
     assert [s.name for s in again.spans] == ["x"]
 
 
