@@ -498,10 +498,14 @@ def _print_timeline(timeline: dict[str, Any], n: int) -> None:
     for tile in sorted(_open_at(tiles, last_start), key=lambda t: -t["end_s"])[:8]:
         steps = below(tile["number"])
         parts = []
-        for name in ("features", "forest", "cut"):
+        for name in ("features", "forest", "squares"):
             mine = [s for s in steps if s["name"] == name]
             if mine:
-                parts.append(f"{name} {mine[0]['start_s']:.2f}-{mine[0]['end_s']:.2f}")
+                threads = mine[0]["attrs"].get("threads")
+                parts.append(
+                    f"{name} {mine[0]['start_s']:.2f}-{mine[0]['end_s']:.2f}"
+                    + ("" if threads is None else f" on {threads}")
+                )
         squares = [s for s in steps if s["name"] == "cut square"]
         if squares:
             longest = max(squares, key=lambda s: s["end_s"] - s["start_s"])

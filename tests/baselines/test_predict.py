@@ -18,6 +18,7 @@ from semantic3d.baselines.covariance.training import (
     fit_model,
 )
 from semantic3d.core.errors import GroundTruthOutputError, OutputExistsError
+from semantic3d.core.threads import thread_budget
 from semantic3d.core.timeline import Span, recording
 from semantic3d.features import FeatureConfig
 from semantic3d.io.ascii import read_ascii_points
@@ -92,6 +93,11 @@ def test_a_tiled_prediction_marks_its_steps_on_a_timeline_and_labels_the_same(
         assert len(inside) == len(tiles), step  # each tile's own, on its thread
     squares = timeline.named("cut square")
     assert squares and all(tile_of(s) is not None for s in squares)
+    for step in timeline.named("features") + timeline.named("forest"):
+        assert 1 <= step.attrs["threads"] <= thread_budget(), step
+    for cut in timeline.named("squares"):  # the graphs cut in squares, on the tile's threads
+        assert cut.attrs["groups"] > 1 and 1 <= cut.attrs["threads"] <= thread_budget()
+        assert tile_of(cut) is not None
     assert max(s.attrs["rows"] for s in squares) <= 200  # the tiles' graphs cut in squares
     (written,) = timeline.named("write labels")
     assert written.attrs["points"] == marked.n_points

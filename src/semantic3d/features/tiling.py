@@ -570,7 +570,7 @@ class TiledScan:
                 points=int(self.store.count(tile)),
                 threads=threads_of(tile),
             ):
-                with span("features"):
+                with span("features", threads=thread_budget()):
                     features = self.tile_features(tile, select=wanted)
                 return (False, None) if features is None else (True, function(features))
 

@@ -393,17 +393,18 @@ def label_rows_by_group(
             unary = unary_costs(proba[rows])  # in the group's task: on its thread
             return alpha_expansion(unary, group_edges, weight=potts_weight, max_sweeps=max_sweeps)
 
-    take_free_threads()  # in a map's last tasks: the threads the others left
+    threads = take_free_threads()  # in a map's last tasks: the threads the others left
     # groups cut at the same time (the cuts release the GIL); each group's labels alone.
     # The largest first: the last cut to end is then a small one, not the densest tile's
     # alone on one thread while the others wait (a twelfth of a 2 M-point scan's time).
     largest_first = np.argsort(-np.diff(bounds), kind="stable").tolist()
-    for number, labels in zip(
-        largest_first,
-        map_in_threads(label_group, largest_first, name="s3d-graph-cut"),
-        strict=True,
-    ):
-        result[order[bounds[number] : bounds[number + 1]]] = labels
+    with span("squares", groups=n_groups, threads=threads):
+        for number, labels in zip(
+            largest_first,
+            map_in_threads(label_group, largest_first, name="s3d-graph-cut"),
+            strict=True,
+        ):
+            result[order[bounds[number] : bounds[number + 1]]] = labels
     return result
 
 

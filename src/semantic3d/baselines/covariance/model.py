@@ -236,8 +236,8 @@ class CovarianceModel:
             )
         if values.shape[0] == 0:
             return np.empty(0, np.uint8)
-        take_free_threads()  # in a map's last tasks: the threads the others left
-        with span("forest", rows=values.shape[0]):
+        threads = take_free_threads()  # in a map's last tasks: the threads the others left
+        with span("forest", rows=values.shape[0], threads=threads):
             proba = self.classifier.compiled_.predict_proba(values)
         classes = np.asarray(self.classifier.classes_, dtype=np.uint8)
         context = self.context
