@@ -329,14 +329,20 @@ def test_kept_points_only_with_their_scan_positions(tmp_path: Path, buffer_point
 
 
 def _mapped_kib(path: Path) -> int:
-    """Resident KiB of this process's mappings of ``path`` (Linux's smaps)."""
-    total, inside = 0, False
-    for line in Path("/proc/self/smaps").read_text().splitlines():
-        fields = line.split()
-        if fields and "-" in fields[0] and len(fields) >= 5:  # a mapping's header line
-            inside = fields[-1] == str(path)
-        elif inside and fields[0] == "Rss:":
-            total += int(fields[1])
+    """Resident KiB of this process's mappings of ``path`` (Linux's smaps).
+
+    Found by searching the text for the path's header lines (a process with numba and
+    torch loaded has tens of thousands of smaps lines: splitting them all for each of
+    hundreds of reads cost most of this file's time); a mapping's ``Rss:`` is the first
+    after its header."""
+    text = Path("/proc/self/smaps").read_text()
+    header_end = f" {path}\n"
+    total = 0
+    at = text.find(header_end)
+    while at != -1:
+        rss = text.index("\nRss:", at)
+        total += int(text[rss + 5 : text.index("kB", rss)])
+        at = text.find(header_end, at + len(header_end))
     return total
 
 
