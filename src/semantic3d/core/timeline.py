@@ -30,8 +30,9 @@ __all__ = ["Span", "Timeline", "recording", "span"]
 @dataclass(frozen=True, slots=True)
 class Span:
     """One step: its name, thread, start and end (seconds since the recording began), the
-    CPU seconds of its thread meanwhile, its attributes, and the span it ran inside on
-    the same thread (its index in :attr:`Timeline.spans` order of starting, or -1)."""
+    CPU seconds of its thread meanwhile and its attributes. Spans are numbered as they
+    start (``number``); ``parent`` is the number of the span it ran inside on the same
+    thread, or -1."""
 
     name: str
     thread: str
@@ -62,7 +63,7 @@ class Span:
 
 
 class Timeline:
-    """The spans recorded by one :func:`recording` block, in the order they ended."""
+    """The spans recorded by one :func:`recording` block and, once it ended, its length."""
 
     def __init__(self) -> None:
         self._origin = time.perf_counter()
