@@ -183,8 +183,9 @@ class _ReadFloor:
         from concurrent.futures import ThreadPoolExecutor
 
         self.items = items
-        self.size = sum(path.stat().st_size for path in paths)
-        self.jobs = [(p, at) for p in paths for at in range(0, p.stat().st_size, self.BLOCK)]
+        sizes = {path: path.stat().st_size for path in paths}
+        self.size = sum(sizes.values())
+        self.jobs = [(p, at) for p, size in sizes.items() for at in range(0, size, self.BLOCK)]
         self.pool = ThreadPoolExecutor(max_workers=n_threads)
         self.local = threading.local()
 
@@ -452,15 +453,17 @@ def _print_timeline(timeline: dict[str, Any], n: int) -> None:
         f"{'step':<12} {'count':>6} {'first s':>8} {'last end':>8} {'wall sum':>9} "
         f"{'CPU sum':>8} {'longest':>8}"
     )
-    for name in dict.fromkeys(step["name"] for step in spans):
-        steps = [step for step in spans if step["name"] == name]
+    named: dict[str, list[dict[str, Any]]] = {}
+    for step in spans:
+        named.setdefault(step["name"], []).append(step)
+    for name, steps in named.items():
         walls = [step["end_s"] - step["start_s"] for step in steps]
         print(
             f"{name:<12} {len(steps):>6} {min(s['start_s'] for s in steps):>8.2f} "
             f"{max(s['end_s'] for s in steps):>8.2f} {sum(walls):>9.2f} "
             f"{sum(s['cpu_s'] for s in steps):>8.2f} {max(walls):>8.2f}"
         )
-    tiles = [step for step in spans if step["name"] == "tile"]
+    tiles = named.get("tile", [])
     if not tiles:
         return
     first = min(t["start_s"] for t in tiles)
@@ -474,15 +477,9 @@ def _print_timeline(timeline: dict[str, Any], n: int) -> None:
     slices = 16
     step_s = max(last_end - first, 1e-9) / slices
     print("open at each sixteenth of the tiles' time (tiles / cut squares / features):")
-    print(
-        "  "
-        + " ".join(
-            f"{len(_open_at(tiles, first + (k + 0.5) * step_s))}"
-            f"/{len(_open_at([s for s in spans if s['name'] == 'cut square'], first + (k + 0.5) * step_s))}"
-            f"/{len(_open_at([s for s in spans if s['name'] == 'features'], first + (k + 0.5) * step_s))}"
-            for k in range(slices)
-        )
-    )
+    middles = [first + (k + 0.5) * step_s for k in range(slices)]
+    kinds = [tiles, named.get("cut square", []), named.get("features", [])]
+    print("  " + " ".join("/".join(str(len(_open_at(k, t))) for k in kinds) for t in middles))
     children: dict[int, list[dict[str, Any]]] = {}
     for step in spans:
         children.setdefault(step["parent"], []).append(step)

@@ -139,10 +139,11 @@ def span(name: str, **attrs: Any) -> Iterator[dict[str, Any]]:
         yield attrs
         return
     number = timeline._number()
-    open_spans: list[int] = getattr(_stack, "open", None) or []
+    open_spans: list[int] | None = getattr(_stack, "open", None)
+    if open_spans is None:
+        open_spans = _stack.open = []
     parent = open_spans[-1] if open_spans else -1
     open_spans.append(number)
-    _stack.open = open_spans
     start = timeline.now()
     cpu = time.thread_time()
     try:
