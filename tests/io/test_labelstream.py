@@ -151,3 +151,41 @@ def test_long_files_reject_non_digits_whatever_the_range(high: int) -> None:
     assert stream.problems() == [
         f"x.labels: line 5001: expected an integer label value 0..{high}, found 'x'"
     ]
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    values=st.lists(st.integers(0, 9), min_size=1, max_size=200),
+    block_size=st.integers(16, 80),
+    skips=st.lists(st.integers(0, 20), max_size=10),
+)
+def test_lines_checked_by_the_caller_are_skipped_and_counted(
+    values: list[int], block_size: int, skips: list[int]
+) -> None:
+    """A caller parsing ``d\\n`` lines from ``buffered`` and skipping them leaves the stream
+    where reading them would have: the values after them, the same line count."""
+    data = "".join(f"{v}\n" for v in values).encode()
+    stream = _stream(data, block_size=block_size)
+    taken: list[int] = []
+    for want in skips:
+        buf, start, end = stream.buffered(block_size // 2)
+        n_lines = min(want, (end - start) // 2)
+        taken.extend(int(b) - 48 for b in buf[start : start + 2 * n_lines : 2])
+        stream.skip_checked_lines(n_lines, 2 * n_lines)
+        assert stream.n_lines == len(taken)
+    rest = _read_all(stream, 7)
+    assert taken + rest.tolist() == values
+    assert stream.n_lines == len(values)
+    assert stream.problems() == []
+
+
+def test_buffered_and_skip_refuse_what_they_cannot_do() -> None:
+    stream = _stream(b"1\n2\n", block_size=32)
+    with pytest.raises(ValueError, match=r"min_bytes: expected 1\.\.16, found 17"):
+        stream.buffered(17)
+    buf, start, end = stream.buffered(16)
+    assert bytes(buf[start:end]) == b"1\n2\n"
+    with pytest.raises(ValueError, match="at most 4 buffered bytes, found 6 bytes"):
+        stream.skip_checked_lines(3, 6)
+    assert stream.value_range == (0, 255)
+    assert stream.read(5).tolist() == [1, 2]

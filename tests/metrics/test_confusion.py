@@ -95,6 +95,41 @@ def test_bad_input_is_rejected_and_counts_stay_unchanged(
     assert cm.n_points == 0
 
 
+def test_added_counts_equal_the_pairs_they_count() -> None:
+    rng = np.random.default_rng(5)
+    y_true, y_pred = rng.integers(0, 9, 500), rng.integers(0, 9, 500)
+    counts = np.zeros((9, 9), np.int32)
+    np.add.at(counts, (y_true, y_pred), 1)
+    added, updated = ConfusionMatrix(), ConfusionMatrix()
+    added.add_counts(counts)
+    updated.update(y_true, y_pred)
+    np.testing.assert_array_equal(added.compute(), updated.compute())
+    np.testing.assert_array_equal(added.compute_unassigned(), updated.compute_unassigned())
+    assert added.n_points == updated.n_points
+
+
+@pytest.mark.parametrize(
+    ("counts", "error", "message"),
+    [
+        (
+            np.zeros((8, 8), np.int64),
+            ShapeError,
+            r"expected a \(9, 9\) integer array, found shape \(8, 8\)",
+        ),
+        (np.zeros((9, 9)), ShapeError, "of float64"),
+        (-np.eye(9, dtype=np.int64), DataFormatError, "non-negative counts, found -1"),
+    ],
+)
+def test_added_counts_are_checked_and_nothing_is_added_on_error(
+    counts: np.ndarray, error: type[Exception], message: str
+) -> None:
+    matrix = ConfusionMatrix()
+    matrix.update([1, 2], [1, 1])
+    with pytest.raises(error, match=message):
+        matrix.add_counts(counts)
+    assert matrix.n_points == 2
+
+
 def test_merge_checks_class_count() -> None:
     with pytest.raises(ShapeError, match="expected a matrix with 8 classes, found 3"):
         ConfusionMatrix().merge(ConfusionMatrix(n_classes=3))

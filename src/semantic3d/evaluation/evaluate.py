@@ -3,9 +3,12 @@
 One function for every shell: the CLI and the benchmark server both call it. Each scan's
 ground truth and prediction are streamed side by side, chunk by chunk, into a
 :class:`~semantic3d.metrics.ConfusionMatrix`; memory stays constant whatever the file
-sizes. Validation happens in the same pass (values, line counts) and every problem is
-collected before anything is reported, so an invalid submission gets one
-:class:`~semantic3d.core.errors.SubmissionError` listing them all.
+sizes. Runs of one-digit lines in both files (the benchmark's own shape) are checked and
+counted in one compiled pass (:mod:`semantic3d.evaluation._digit_pair_kernel`); every other
+line goes through the general parsers, which report its problems. Validation happens in
+the same pass (values, line counts) and every problem is collected before anything is
+reported, so an invalid submission gets one :class:`~semantic3d.core.errors.SubmissionError`
+listing them all.
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
+from types import ModuleType
 
 import numpy as np
 from numpy.typing import NDArray
@@ -117,7 +121,115 @@ def _stream_pair(
     chunk_size: int,
     progress: _Progress,
 ) -> None:
-    """Accumulate (truth, prediction) chunks, then parse what is left of either stream.
+    """Count every (truth, prediction) pair of the two streams into ``matrix``, checking both.
+
+    Runs of ``d\\n`` lines in both files (the benchmark's shape) are parsed and counted in
+    one pass by the compiled pair counter; any other line goes to the general parsers
+    (which report its problems), a window of lines at a time, and a file of another shape
+    falls back to them altogether after a few windows.
+    """
+    counter = _DigitPairCounter.for_streams(truth, pred, matrix.n_classes)
+    step = _RETRY_PAIRS if counter is not None else chunk_size
+    while counter is not None and step < chunk_size:
+        counted, other_shape = counter.count(truth, pred, progress)
+        if counted:
+            step = _RETRY_PAIRS
+        elif other_shape:
+            step = min(2 * step, chunk_size)
+        size = step if other_shape else chunk_size
+        y_true = truth.read(size)
+        with _reading_prediction():
+            y_pred = pred.read(y_true.shape[0])
+        n = y_pred.shape[0]
+        if n and not pred.has_problems:
+            matrix.update(y_true[:n], y_pred)
+        progress.report(truth.bytes_read)
+        if n < size:
+            break
+    else:
+        _stream_values(truth, pred, matrix, chunk_size=chunk_size, progress=progress)
+    if counter is not None:
+        counter.add_to(matrix)
+    truth.drain()
+    with _reading_prediction():
+        pred.drain()
+
+
+_BLOCK_BYTES = 1 << 20
+"""Bytes read from each file at a time: small enough that the pair counter finds the two
+blocks still in cache (on one thread, 4 MiB blocks gave 0.6x the pairs/s of 1 MiB here,
+256 KiB 0.85x)."""
+_DIGIT_PAIR_READ = _BLOCK_BYTES // 2
+"""Bytes of each file the pair counter is given at least, but at the ends of the files."""
+_RETRY_PAIRS = 1 << 12
+"""Pairs the general parsers take after a window of another shape (one counter window),
+doubled while the counter counts nothing, up to the chunk size: then they take the rest."""
+
+
+class _DigitPairCounter:
+    """The compiled counter of ``d\\n`` pairs, driven over two streams' buffers."""
+
+    def __init__(self, truth_range: tuple[int, int], pred_range: tuple[int, int], size: int):
+        self.truth_range = truth_range
+        self.pred_range = pred_range
+        self.table = np.zeros((size, size), dtype=np.int64)
+        # Short texts go to the general parsers (numpy for small ones) until the counter has
+        # run: loading numba costs more than parsing a test file.
+        self.min_pairs = _DIGIT_PAIR_READ // 2
+        self.kernel: ModuleType | None = None
+
+    @classmethod
+    def for_streams(
+        cls, truth: LabelStream, pred: LabelStream, n_classes: int
+    ) -> _DigitPairCounter | None:
+        """A counter for the single-digit values both streams accept; None if there are none."""
+        t_low, t_high = truth.value_range
+        p_low, p_high = pred.value_range
+        t_high, p_high = min(t_high, 9, n_classes), min(p_high, 9, n_classes)
+        if not (0 <= t_low <= t_high and 0 <= p_low <= p_high):
+            return None
+        return cls((t_low, t_high), (p_low, p_high), n_classes + 1)
+
+    def count(self, truth: LabelStream, pred: LabelStream, progress: _Progress) -> tuple[int, bool]:
+        """Count pairs until a file ends or a window holds another line; (pairs, the latter)."""
+        counted = 0
+        while True:
+            t_buf, t_at, t_end = truth.buffered(_DIGIT_PAIR_READ)
+            with _reading_prediction():
+                p_buf, p_at, p_end = pred.buffered(_DIGIT_PAIR_READ)
+            n = min(t_end - t_at, p_end - p_at) // 2
+            if n < self.min_pairs:
+                return counted, False
+            if self.kernel is None:
+                from semantic3d.evaluation import _digit_pair_kernel
+
+                self.kernel = _digit_pair_kernel
+                self.min_pairs = _digit_pair_kernel.WINDOW
+            kernel = self.kernel
+            got = kernel.count_pairs(
+                t_buf, t_at, p_buf, p_at, n, self.truth_range, self.pred_range, self.table
+            )
+            truth.skip_checked_lines(got, 2 * got)
+            pred.skip_checked_lines(got, 2 * got)
+            counted += got
+            progress.report(truth.bytes_read)
+            if got < n - n % kernel.WINDOW:
+                return counted, True
+
+    def add_to(self, matrix: ConfusionMatrix) -> None:
+        matrix.add_counts(self.table)
+        self.table[...] = 0
+
+
+def _stream_values(
+    truth: LabelStream,
+    pred: LabelStream,
+    matrix: ConfusionMatrix,
+    *,
+    chunk_size: int,
+    progress: _Progress,
+) -> None:
+    """Accumulate (truth, prediction) chunks of parsed values until either stream ends.
 
     The ground truth is parsed one chunk ahead in a worker thread (the kernels and file
     reads release the GIL) while this thread inflates and parses the prediction; with a
@@ -139,9 +251,6 @@ def _stream_pair(
                 break
         if pending is not None:
             pending.result()
-    truth.drain()
-    with _reading_prediction():
-        pred.drain()
 
 
 def _evaluate_scan(
@@ -157,7 +266,13 @@ def _evaluate_scan(
     """Stream one (ground truth, prediction) pair; None when the prediction has problems."""
     matrix = ConfusionMatrix(protocol.n_classes)
     with gt_path.open("rb", buffering=0) as gt_handle:
-        truth = LabelStream(gt_handle, source=str(gt_path), low=0, high=protocol.n_classes)
+        truth = LabelStream(
+            gt_handle,
+            source=str(gt_path),
+            low=0,
+            high=protocol.n_classes,
+            block_size=_BLOCK_BYTES,
+        )
         try:
             pred_handle = entry.open()
         except READ_FAILURES as exc:
@@ -169,6 +284,7 @@ def _evaluate_scan(
                 source=entry.name,
                 low=protocol.prediction_min,
                 high=protocol.prediction_max,
+                block_size=_BLOCK_BYTES,
             )
             try:
                 _stream_pair(truth, pred, matrix, chunk_size=chunk_size, progress=progress)

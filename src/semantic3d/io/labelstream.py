@@ -5,8 +5,9 @@ line, ``LabelStream`` reads any binary stream (benchmark submissions arrive as z
 that must be streamed, never extracted) and collects *every* problem of a file (how many
 bad lines, the first one of each kind) in one pass, as submission validation must. Both
 run the same parser (:func:`semantic3d.io._label_parsing.parse_lines`: numpy for small
-texts, compiled kernels for long ones); this is the hot path of evaluation (two files
-parsed per scan, ~750 M labels/s each here).
+texts, compiled kernels for long ones). The evaluator parses every line of another shape
+with it; runs of one-digit lines it may check and count itself, from :meth:`buffered`
+bytes it then skips with :meth:`skip_checked_lines`.
 
 Format accepted: one integer a line, ``\\n`` or ``\\r\\n`` line ends, spaces or tabs
 around the value tolerated, the last line with or without a line end. An empty line, a
@@ -172,6 +173,41 @@ class LabelStream:
                 out[filled] = 0
                 filled += 1
         return out[:filled]
+
+    def buffered(self, min_bytes: int) -> tuple[NDArray[np.uint8], int, int]:
+        """The bytes read and not yet parsed, as ``(buffer, start, end)``.
+
+        Reads more first when fewer than ``min_bytes`` are buffered and the stream has
+        more (``min_bytes`` at most half the block size). ``start`` is a line start. For a
+        caller that parses whole lines itself and then calls :meth:`skip_checked_lines`;
+        the buffer's bytes are valid until the next call of any other method.
+        """
+        if not 0 < min_bytes <= self._buf.shape[0] // 2:
+            raise ValueError(f"min_bytes: expected 1..{self._buf.shape[0] // 2}, found {min_bytes}")
+        if not self._skipping and not self._eof and self._end - self._pos < min_bytes:
+            self._refill()
+        if self._skipping:
+            return self._buf, self._pos, self._pos
+        return self._buf, self._pos, self._end
+
+    def skip_checked_lines(self, n_lines: int, n_bytes: int) -> None:
+        """Move past ``n_lines`` whole lines (``n_bytes``) from the start of :meth:`buffered`.
+
+        The caller parsed them and found each an integer within this stream's range: they
+        are counted as lines, with no problem.
+        """
+        if not 0 <= n_bytes <= self._end - self._pos or n_lines < 0:
+            raise ValueError(
+                f"skip_checked_lines: expected at most {self._end - self._pos} buffered "
+                f"bytes, found {n_bytes} bytes of {n_lines} lines"
+            )
+        self._pos += n_bytes
+        self._state[LINES] += n_lines
+
+    @property
+    def value_range(self) -> tuple[int, int]:
+        """The accepted label values, ``(low, high)``."""
+        return self._low, self._high
 
     def drain(self, *, chunk_size: int = 1 << 20) -> int:
         """Parse the rest of the stream (counting lines and problems); values left over."""

@@ -97,6 +97,27 @@ class ConfusionMatrix:
             )
         _accumulate(t, p, self._counts)
 
+    def add_counts(self, counts: ArrayLike) -> None:
+        """Add pairs already counted: ``counts[t, p]`` pairs of truth value t, prediction p.
+
+        ``counts`` is ``(n_classes + 1, n_classes + 1)``, indexed by label value like
+        :meth:`update`'s pairs (row and column 0 included), non-negative integers.
+
+        Raises:
+            ShapeError: ``counts`` has another shape or is not integer.
+            DataFormatError: a count is negative.
+        """
+        arr = np.asarray(counts)
+        size = self.n_classes + 1
+        if arr.shape != (size, size) or arr.dtype.kind not in "ui":
+            raise ShapeError(
+                f"counts: expected a ({size}, {size}) integer array, "
+                f"found shape {arr.shape} of {arr.dtype}"
+            )
+        if arr.size and int(arr.min()) < 0:
+            raise DataFormatError(f"counts: expected non-negative counts, found {int(arr.min())}")
+        self._counts[0] += arr.astype(np.int64, copy=False)
+
     def _totals(self) -> NDArray[np.int64]:
         totals: NDArray[np.int64] = self._counts.sum(axis=0)
         return totals

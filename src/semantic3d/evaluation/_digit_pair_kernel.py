@@ -1,0 +1,157 @@
+"""The compiled counter of ``d\\n`` line pairs: ground truth and prediction text, counted at once.
+
+Hand-written hot path. A benchmark file holds one digit a line, so a scan's two files are
+read side by side as 16-bit words, a line each: the word minus ``"0\\n"`` is the label value
+exactly when it is at most 9. One pass checks both values against their ranges and counts
+the pair in the confusion table, where parsing each file into a value array, checking the
+arrays' ranges and counting them (what :class:`~semantic3d.io.labelstream.LabelStream` and
+:class:`~semantic3d.metrics.ConfusionMatrix` do for any text) reads and writes each label
+four times more. No library parses and counts in one pass; the general parsers stay the
+reference and handle every other shape (CRLF, several digits, bad lines).
+
+The lines are taken in windows of :data:`WINDOW` pairs, the windows split into one run per
+thread. A run stops at its first window holding anything else; what is counted is the
+prefix of whole windows before the first such window, so the caller can hand that window
+to the general parsers, which report its problems. Counts are integers: the same whatever
+the threads.
+"""
+
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+from numpy.typing import NDArray
+
+WINDOW = 4096
+"""Line pairs checked at once: a window either counts whole or not at all."""
+
+_LANES = 8  # interleaved counters: runs of one class do not wait on one cell
+_PAIR_ZERO = 0x0A30
+"""``"0\\n"`` read as one little-endian 16-bit word."""
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _window_is_valid(
+    truth: NDArray[np.uint16],
+    pred: NDArray[np.uint16],
+    start: int,
+    truth_low: np.uint16,
+    truth_span: np.uint16,
+    pred_low: np.uint16,
+    pred_span: np.uint16,
+) -> bool:  # pragma: no cover - compiled
+    """Whether the ``WINDOW`` pairs from ``start`` are ``d\\n`` lines of values in range.
+
+    A word minus ``"0\\n"`` is the value exactly when it is at most 9, and the value lies
+    in ``low..low + span`` exactly when it less ``low`` (wrapping) is at most ``span``:
+    the largest such difference of the window says it (branch-free: vectorised).
+    """
+    worst_truth = np.uint16(0)
+    worst_pred = np.uint16(0)
+    for k in range(start, start + WINDOW):
+        t = np.uint16(truth[k] - np.uint16(_PAIR_ZERO))
+        p = np.uint16(pred[k] - np.uint16(_PAIR_ZERO))
+        worst_truth = max(worst_truth, np.uint16(t - truth_low))
+        worst_pred = max(worst_pred, np.uint16(p - pred_low))
+    return bool(worst_truth <= truth_span) and bool(worst_pred <= pred_span)
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _count_window(
+    truth: NDArray[np.uint16], pred: NDArray[np.uint16], start: int, lanes: NDArray[np.int64]
+) -> None:  # pragma: no cover - compiled
+    """Count the ``WINDOW`` checked pairs from ``start``: ``lanes[lane * 256 + t * 16 + p]``.
+
+    In a checked ``d\\n`` word the low nibble is the digit (``'0'`` is 0x30).
+    """
+    for k in range(start, start + WINDOW, _LANES):
+        for lane in range(_LANES):
+            cell = ((truth[k + lane] & 15) << 4) | (pred[k + lane] & 15)
+            lanes[lane * 256 + cell] += 1
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def count_digit_pairs(
+    truth: NDArray[np.uint8],
+    truth_at: int,
+    pred: NDArray[np.uint8],
+    pred_at: int,
+    n_pairs: int,
+    truth_low: int,
+    truth_high: int,
+    pred_low: int,
+    pred_high: int,
+    table: NDArray[np.int64],
+    n_threads: int,
+) -> int:  # pragma: no cover - compiled
+    """Count the ``d\\n`` line pairs at ``truth[truth_at:]`` and ``pred[pred_at:]`` into ``table``.
+
+    At most ``n_pairs`` pairs, in whole windows. ``table[t, p]`` (indexed by label value)
+    gains the pairs counted; every value counted lies in ``truth_low..truth_high`` and
+    ``pred_low..pred_high`` (both within 0..9 and within the table); the windows are
+    split into a run per thread of ``n_threads`` (numba's count). Returns how many
+    pairs were counted: fewer than the whole windows of ``n_pairs`` when a window holds a
+    line of another shape or a value out of range, the first such window not counted.
+    """
+    rows, cols = table.shape
+    if not (0 <= truth_low <= truth_high < min(rows, 10) and 0 <= pred_low <= pred_high):
+        raise ValueError("count_digit_pairs: a value range outside 0..9 or the table")
+    if pred_high >= min(cols, 10):
+        raise ValueError("count_digit_pairs: a value range outside 0..9 or the table")
+    n_windows = n_pairs // WINDOW
+    if n_windows == 0:
+        return 0
+    truth_words = truth[truth_at : truth_at + 2 * WINDOW * n_windows].view(np.uint16)
+    pred_words = pred[pred_at : pred_at + 2 * WINDOW * n_windows].view(np.uint16)
+    runs = max(1, min(n_threads, n_windows))
+    per_run = (n_windows + runs - 1) // runs
+    runs = (n_windows + per_run - 1) // per_run
+    counts = np.zeros((runs, _LANES * 256), dtype=np.int64)
+    good = np.zeros(runs, dtype=np.int64)  # whole windows counted by each run
+    t_low, t_span = np.uint16(truth_low), np.uint16(truth_high - truth_low)
+    p_low, p_span = np.uint16(pred_low), np.uint16(pred_high - pred_low)
+    for run in nb.prange(runs):
+        lanes = np.zeros(_LANES * 256, dtype=np.int64)
+        for window in range(run * per_run, min(n_windows, (run + 1) * per_run)):
+            start = window * WINDOW
+            if not _window_is_valid(truth_words, pred_words, start, t_low, t_span, p_low, p_span):
+                break
+            _count_window(truth_words, pred_words, start, lanes)
+            good[run] += 1
+        counts[run] = lanes
+    counted = 0
+    for run in range(runs):
+        for lane in range(_LANES):
+            for t in range(truth_low, truth_high + 1):
+                for p in range(pred_low, pred_high + 1):
+                    table[t, p] += counts[run, lane * 256 + t * 16 + p]
+        counted += good[run]
+        if good[run] < min(n_windows, (run + 1) * per_run) - run * per_run:
+            break  # this run stopped early: later runs are not a prefix
+    return counted * WINDOW
+
+
+def count_pairs(
+    truth: NDArray[np.uint8],
+    truth_at: int,
+    pred: NDArray[np.uint8],
+    pred_at: int,
+    n_pairs: int,
+    truth_range: tuple[int, int],
+    pred_range: tuple[int, int],
+    table: NDArray[np.int64],
+) -> int:
+    """:func:`count_digit_pairs` on this thread's numba threads."""
+    return int(
+        count_digit_pairs(
+            truth,
+            truth_at,
+            pred,
+            pred_at,
+            n_pairs,
+            *truth_range,
+            *pred_range,
+            table,
+            nb.get_num_threads(),
+        )
+    )
