@@ -30,9 +30,11 @@ DEMO_ARGS ?= --serve
 demo: $(VENV)/.demo-installed
 	$(BIN)/semantic3d demo $(DEMO_ARGS)
 
+# worksteal: a worker that runs out of tests takes the other's queue, so the slowest tests
+# (minutes) do not leave one core idle at the end (652 s against 734-778 s with "load").
 test: $(VENV)/.test-installed
 	bash scripts/install-server-test-deps.sh
-	$(BIN)/python -m pytest -n 2 $(PYTEST_ARGS)
+	$(BIN)/python -m pytest -n 2 --dist worksteal $(PYTEST_ARGS)
 
 lint: $(VENV)/.test-installed
 	$(BIN)/ruff check src tests benchmarks

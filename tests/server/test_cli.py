@@ -146,3 +146,56 @@ def test_benchmark_challenge_needs_its_scans(
     )
     assert result.exit_code == 2
     assert "expected ground truth of every reduced-8 scan" in result.output
+
+
+def test_an_admin_command_loads_no_web_framework_and_computes_no_dummy_hash(
+    cli: typer.Typer, tmp_path: Path
+) -> None:
+    """``create-token`` reads and writes the database only: neither FastAPI (0.6 s to
+    import) nor an argon2 hash (64 MiB, ~0.2 s) before its work."""
+    import json
+    import subprocess
+    import sys
+    import textwrap
+
+    data = str(tmp_path / "data")
+    created = run(
+        cli, "admin", "create-user", "alice", "--data-dir", data, input=f"{PASSWORD}\n" * 2
+    )
+    assert created.exit_code == 0, created.output
+    code = textwrap.dedent(f"""
+        import contextlib, io, json, sys
+        from semantic3d.cli.server import _main
+        sys.argv = ["semantic3d-server", "admin", "create-token", "alice", "--data-dir", {data!r}]
+        with contextlib.redirect_stdout(io.StringIO()) as shown:
+            try:
+                _main()
+            except SystemExit as exc:
+                assert not exc.code, exc.code
+        from semantic3d.server.services import accounts
+        print(json.dumps([
+            shown.getvalue(), "fastapi" in sys.modules, accounts.dummy_hash.cache_info().currsize
+        ]))
+    """)
+    done = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        stdin=subprocess.DEVNULL,
+    )
+    assert done.returncode == 0, done.stderr
+    token, fastapi_loaded, dummy_hashes = json.loads(done.stdout.strip().splitlines()[-1])
+    assert token.startswith("s3d_")
+    assert fastapi_loaded is False
+    assert dummy_hashes == 0
+
+
+def test_the_server_makes_the_dummy_hash_before_any_login(tmp_path: Path) -> None:
+    from semantic3d.server.app import create_app
+    from semantic3d.server.services import accounts
+    from semantic3d.server.settings import Settings
+
+    accounts.dummy_hash.cache_clear()
+    create_app(Settings(data_dir=tmp_path / "data"))
+    assert accounts.dummy_hash.cache_info().currsize == 1

@@ -30,7 +30,8 @@ _DATABASE_URL = typer.Option(
 def _settings(data_dir: Path | None, database_url: str | None, **extra: Any) -> Any:
     from semantic3d.core.errors import require
 
-    require("fastapi", "server")
+    # what the settings need (fastapi, 0.6 s to import here, only for serving)
+    require("pydantic_settings", "server")
     from semantic3d.server.settings import load_settings
 
     overrides = dict(extra)

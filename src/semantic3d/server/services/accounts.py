@@ -51,8 +51,15 @@ TOKEN_LAST_USED_EVERY = timedelta(minutes=1)
 """A token's "last used" time is written at most this often (not on every request)."""
 
 _hasher = PasswordHasher()
-# Verified against for unknown usernames, so a wrong name costs as long as a wrong password.
-_DUMMY_HASH = _hasher.hash(secrets.token_urlsafe(16))
+
+
+@lru_cache(maxsize=1)
+def dummy_hash() -> str:
+    """A hash verified against for unknown usernames, so a wrong name costs as long as a
+    wrong password. Made once per process: the server makes it at start-up
+    (:func:`semantic3d.server.app.create_app`), so no login pays for it; the commands that
+    import this module and log nobody in (an admin's ``create-token``) never do."""
+    return _hasher.hash(secrets.token_urlsafe(16))
 
 
 def normalise_username(username: str) -> str:
@@ -219,7 +226,7 @@ def authenticate(
         raise
     try:
         with hashing_slot(settings):
-            valid = verify_password(user.password_hash if user else _DUMMY_HASH, password)
+            valid = verify_password(user.password_hash if user else dummy_hash(), password)
     except ServiceUnavailableError:  # nothing was checked: the attempt does not count
         with write_transaction(factory) as session:
             session.execute(delete(LoginFailure).where(LoginFailure.id == attempt_id))
