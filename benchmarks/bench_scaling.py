@@ -553,6 +553,12 @@ def main() -> None:
         help="Record one more predict run at the largest thread count on a timeline and "
         "say what ran after the last tile started.",
     )
+    parser.add_argument(
+        "--oversubscribe",
+        action="store_true",
+        help="Also run thread counts above the cores (their times mean nothing; with "
+        "--timeline, how the threads are shared out among the tiles does).",
+    )
     args = parser.parse_args()
     if args.child:
         print(json.dumps(child(json.loads(args.child))))
@@ -563,7 +569,7 @@ def main() -> None:
     from semantic3d.core.threads import available_cores
 
     cores = available_cores()
-    counts = sorted({n for n in args.threads if n <= cores})
+    counts = sorted({n for n in args.threads if n <= cores or args.oversubscribe})
     print(
         f"{cores} cores, threads {counts}, {args.points:,} points; "
         f"load average {os.getloadavg()[0]:.2f} before preparing"
