@@ -46,11 +46,15 @@ def _window_is_valid(
     in ``low..low + span`` exactly when it less ``low`` (wrapping) is at most ``span``:
     the largest such difference of the window says it (branch-free: vectorised).
     """
+    # a slice indexed from 0: numba then wraps no index as a negative one (that check
+    # per word kept the loop scalar: 0.8 against 1.0 G pairs/s with the counting here)
+    truth_window = truth[start : start + WINDOW]
+    pred_window = pred[start : start + WINDOW]
     worst_truth = np.uint16(0)
     worst_pred = np.uint16(0)
-    for k in range(start, start + WINDOW):
-        t = np.uint16(truth[k] - np.uint16(_PAIR_ZERO))
-        p = np.uint16(pred[k] - np.uint16(_PAIR_ZERO))
+    for k in range(WINDOW):
+        t = np.uint16(truth_window[k] - np.uint16(_PAIR_ZERO))
+        p = np.uint16(pred_window[k] - np.uint16(_PAIR_ZERO))
         worst_truth = max(worst_truth, np.uint16(t - truth_low))
         worst_pred = max(worst_pred, np.uint16(p - pred_low))
     return bool(worst_truth <= truth_span) and bool(worst_pred <= pred_span)
@@ -64,9 +68,11 @@ def _count_window(
 
     In a checked ``d\\n`` word the low nibble is the digit (``'0'`` is 0x30).
     """
-    for k in range(start, start + WINDOW, _LANES):
+    truth_window = truth[start : start + WINDOW]
+    pred_window = pred[start : start + WINDOW]
+    for k in range(0, WINDOW, _LANES):
         for lane in range(_LANES):
-            cell = ((truth[k + lane] & 15) << 4) | (pred[k + lane] & 15)
+            cell = ((truth_window[k + lane] & 15) << 4) | (pred_window[k + lane] & 15)
             lanes[lane * 256 + cell] += 1
 
 

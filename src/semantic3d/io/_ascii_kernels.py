@@ -552,10 +552,16 @@ def segment_bounds(buf: np.ndarray, start: int, stop: int, n_segments: int) -> n
 
 @nb.njit(cache=True, nogil=True)
 def count_lines(buf: np.ndarray, start: int, stop: int) -> int:  # pragma: no cover
-    """Newlines in ``buf[start:stop]`` (a loop LLVM vectorises)."""
+    """Newlines in ``buf[start:stop]`` (a loop LLVM vectorises).
+
+    The loop runs over a slice from index 0: with ``buf[i]`` for ``i`` from ``start``,
+    numba cannot tell the index is never negative and wraps it as a negative index would
+    be, a check per byte that kept the loop scalar (1.3-1.9 GB/s here against 5.3-5.7).
+    """
+    text = buf[start:stop]
     total = 0
-    for i in range(start, stop):
-        total += buf[i] == 10
+    for i in range(text.size):
+        total += text[i] == 10
     return total
 
 
