@@ -31,7 +31,8 @@ demo: $(VENV)/.demo-installed
 	$(BIN)/semantic3d demo $(DEMO_ARGS)
 
 # worksteal: a worker that runs out of tests takes the other's queue, so the slowest tests
-# (minutes) do not leave one core idle at the end (652 s against 734-778 s with "load").
+# (minutes) do not leave one core idle at the end (a clean clone, numba's cache cold: 850 s
+# against 928 s with "load", the same day on 2 cores).
 test: $(VENV)/.test-installed
 	bash scripts/install-server-test-deps.sh
 	$(BIN)/python -m pytest -n 2 --dist worksteal $(PYTEST_ARGS)
