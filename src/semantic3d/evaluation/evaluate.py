@@ -137,12 +137,7 @@ def _stream_pair(
         elif other_shape:
             step = min(2 * step, chunk_size)
         size = step if other_shape else chunk_size
-        y_true = truth.read(size)
-        with _reading_prediction():
-            y_pred = pred.read(y_true.shape[0])
-        n = y_pred.shape[0]
-        if n and not pred.has_problems:
-            matrix.update(y_true[:n], y_pred)
+        n = _count_with_prediction(truth.read(size), pred, matrix)
         progress.report(truth.bytes_read)
         if n < size:
             break
@@ -153,6 +148,19 @@ def _stream_pair(
     truth.drain()
     with _reading_prediction():
         pred.drain()
+
+
+def _count_with_prediction(
+    y_true: NDArray[np.uint8], pred: LabelStream, matrix: ConfusionMatrix
+) -> int:
+    """Parse as many prediction values as ``y_true`` holds and count the pairs into
+    ``matrix`` (no longer once the prediction has problems); the values parsed."""
+    with _reading_prediction():
+        y_pred = pred.read(y_true.shape[0])
+    n = y_pred.shape[0]
+    if n and not pred.has_problems:
+        matrix.update(y_true[:n], y_pred)
+    return int(n)
 
 
 _BLOCK_BYTES = 1 << 20
@@ -241,11 +249,7 @@ def _stream_values(
             y_true = pending.result()
             full = y_true.shape[0] == chunk_size
             pending = pool.submit(truth.read, chunk_size) if full else None
-            with _reading_prediction():
-                y_pred = pred.read(y_true.shape[0])
-            n = y_pred.shape[0]
-            if n and not pred.has_problems:
-                matrix.update(y_true[:n], y_pred)
+            n = _count_with_prediction(y_true, pred, matrix)
             progress.report(truth.bytes_read)
             if n < y_true.shape[0]:
                 break
