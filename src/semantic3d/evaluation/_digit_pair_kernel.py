@@ -100,9 +100,9 @@ def count_digit_pairs(
     line of another shape or a value out of range, the first such window not counted.
     """
     rows, cols = table.shape
-    if not (0 <= truth_low <= truth_high < min(rows, 10) and 0 <= pred_low <= pred_high):
-        raise ValueError("count_digit_pairs: a value range outside 0..9 or the table")
-    if pred_high >= min(cols, 10):
+    if not (
+        0 <= truth_low <= truth_high < min(rows, 10) and 0 <= pred_low <= pred_high < min(cols, 10)
+    ):
         raise ValueError("count_digit_pairs: a value range outside 0..9 or the table")
     n_windows = n_pairs // WINDOW
     if n_windows == 0:

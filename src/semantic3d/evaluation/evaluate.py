@@ -226,7 +226,6 @@ class _DigitPairCounter:
 
     def add_to(self, matrix: ConfusionMatrix) -> None:
         matrix.add_counts(self.table)
-        self.table[...] = 0
 
 
 def _stream_values(
