@@ -17,7 +17,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from semantic3d.core import DataFormatError, PointCloud
-from semantic3d.io import iter_ascii_points, read_ascii_points
+from semantic3d.io import _point_text, iter_ascii_points, read_ascii_points
 
 
 def _bits(values: np.ndarray) -> list[int]:
@@ -157,6 +157,41 @@ def test_integers_in_any_accepted_shape(tmp_path: Path) -> None:
     cloud = read_ascii_points(path)
     assert cloud.intensity.tolist() == [-2147483648, 2147483647, 4]
     assert cloud.rgb.tolist() == [[0, 255, 0], [100, 255, 7], [1, 255, 255]]
+
+
+INTEGER_TOKENS = [
+    "0", "-0", "7", "-7", "+7", "255", "256", "0000255", "-0000", "1234567", "12345678",
+    "-1234567", "2147483647", "2147483648", "-2147483648", "-", "7e", "7.0", "07", "1e2",
+]  # fmt: skip
+
+
+def _row_or_problem(path: Path, row: int) -> tuple[object, ...]:
+    try:
+        cloud = read_ascii_points(path)
+    except DataFormatError as exc:
+        return ("problem", str(exc).split(": line ")[-1].split(": ", 1)[-1])
+    return (cloud.intensity[row].item(), cloud.rgb[row].tolist())
+
+
+@pytest.mark.parametrize("column", [3, 4, 5, 6])
+def test_integer_tokens_read_alike_by_every_path(tmp_path: Path, column: int) -> None:
+    """An integer token gives the same value or the same problem whichever path reads
+    its line: the compiled fast path (a large file, many lines after it), the compiled
+    general path (a large file's last line) and the small-file parser; in the intensity
+    and in each colour column."""
+    ordinary = "1.000 2.000 3.000 4 5 6 7\n"
+    n_ordinary = _point_text.SMALL_FILE_BYTES // len(ordinary) + 1
+    for token in INTEGER_TOKENS:
+        fields = ["-1.250", "2.500", "3.750", "9", "10", "11", "12"]
+        fields[column] = token
+        line = " ".join(fields) + "\n"
+        fast, general, small = (tmp_path / f"{name}.txt" for name in ("fast", "general", "small"))
+        fast.write_text(line + ordinary * n_ordinary)
+        general.write_text(ordinary * n_ordinary + line)
+        small.write_text(line)
+        expected = _row_or_problem(small, 0)
+        assert _row_or_problem(fast, 0) == expected, token
+        assert _row_or_problem(general, n_ordinary) == expected, token
 
 
 @pytest.mark.parametrize(

@@ -232,12 +232,25 @@ def _wide_decimal(buf: np.ndarray, pos: Any) -> tuple[Any, Any, Any]:  # pragma:
 
 @nb.njit(cache=True, nogil=True, inline="always")
 def _fast_integer(buf: np.ndarray, pos: Any) -> tuple[Any, Any, Any]:  # pragma: no cover
-    """``[-]d{1,7}`` then a delimiter: ``(value, end, ok)``. Reads at most 8 bytes from ``pos``."""
+    """``[-]d{1,7}``: ``(value, end, ok)``. Reads at most 8 bytes from ``pos``.
+
+    ``ok`` says only that 1 to 7 digits were found: the caller checks the byte at ``end``
+    (:func:`_fast_line` wants a blank or the line end there, which no digit is).
+    """
     negative, start, word = _signed_word(buf, pos)
     n_digits, digits = _digits_of(word)
-    ok = (n_digits > 0) & (n_digits < 8) & _is_delimiter(_byte_of(word, n_digits))
     value = np.int64(digits)
-    return (-value if negative else value), start + n_digits, ok
+    return (-value if negative else value), start + n_digits, (n_digits > 0) & (n_digits < 8)
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _fast_unsigned(buf: np.ndarray, pos: Any) -> tuple[Any, Any, Any]:  # pragma: no cover
+    """``d{1,7}``, for a colour: ``(value, end, ok)``, as :func:`_fast_integer` without the
+    sign. A sign is no digit (not ok): such a line goes to the general path, which
+    accepts ``-0`` and reports any other negative colour, as it did when this path took
+    the sign and refused the negative value."""
+    n_digits, digits = _digits_of(_load_u64(buf, pos))
+    return np.int64(digits), pos + n_digits, (n_digits > 0) & (n_digits < 8)
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
@@ -255,14 +268,14 @@ def _fast_line(
     ok = ok & ok1 & (_byte(buf, p) == 32)
     i, p, ok1 = _fast_integer(buf, p + 1)
     ok = ok & ok1 & (_byte(buf, p) == 32)
-    r, p, ok1 = _fast_integer(buf, p + 1)
+    r, p, ok1 = _fast_unsigned(buf, p + 1)
     ok = ok & ok1 & (_byte(buf, p) == 32)
-    g, p, ok1 = _fast_integer(buf, p + 1)
+    g, p, ok1 = _fast_unsigned(buf, p + 1)
     ok = ok & ok1 & (_byte(buf, p) == 32)
-    b, p, ok1 = _fast_integer(buf, p + 1)
+    b, p, ok1 = _fast_unsigned(buf, p + 1)
     p += _byte(buf, p) == 13
     ok = ok & ok1 & (_byte(buf, p) == 10)
-    ok = ok & ((r | g | b) >= 0) & ((r | g | b) <= 255)
+    ok = ok & ((r | g | b) <= 255)
     if not ok:
         return -1
     xyz[row, 0] = x
