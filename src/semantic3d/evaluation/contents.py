@@ -23,7 +23,6 @@ import os
 import re
 import stat
 import zipfile
-import zlib
 from collections import Counter
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -34,13 +33,14 @@ from typing import cast
 from semantic3d.core.errors import SubmissionError
 from semantic3d.evaluation.challenge import Challenge
 from semantic3d.evaluation.zipdirectory import check_zip_directory
+from semantic3d.evaluation.zipmember import INFLATE_ERRORS, open_member
 
 _GIB = 1 << 30
 _IGNORED_NAMES = frozenset({".DS_Store", "Thumbs.db", "desktop.ini"})
 _ZIP_MAGIC = b"PK\x03\x04"
-_READ_ERRORS = (
+_READ_ERRORS: tuple[type[BaseException], ...] = (
     zipfile.BadZipFile,
-    zlib.error,
+    *INFLATE_ERRORS,
     EOFError,
     OSError,
     NotImplementedError,
@@ -268,7 +268,11 @@ def _zip_entries(
 
         def opener(info: zipfile.ZipInfo = info) -> io.RawIOBase:
             limit = min(info.file_size, limits.max_member_bytes)
-            member = cast(io.BufferedIOBase, archive.open(info))  # a zipfile.ZipExtFile
+            member: io.RawIOBase | io.BufferedIOBase | None = (
+                None if archive.filename is None else open_member(Path(archive.filename), info)
+            )
+            if member is None:  # another method: zipfile's ZipExtFile
+                member = cast(io.BufferedIOBase, archive.open(info))
             return _CappedReader(member, limit)
 
         entries[name] = SubmissionFile(name, info.filename, info.file_size, opener)
