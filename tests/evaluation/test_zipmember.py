@@ -164,6 +164,9 @@ def test_other_methods_are_left_to_zipfile_and_handles_are_closed(tmp_path: Path
         archive.writestr("a.labels", b"1\n")
         (bzip2,) = archive.infolist()
     assert open_member(path, bzip2) is None
+    encrypted = zipfile.ZipInfo("a.labels")
+    encrypted.flag_bits |= 0x1
+    assert open_member(path, encrypted) is None  # zipfile asks for its password
     path, info, _ = _deflated(tmp_path, b"1\n" * 100)
     before = len(list(Path("/proc/self/fd").iterdir()))
     for _ in range(20):

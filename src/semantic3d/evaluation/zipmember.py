@@ -6,8 +6,8 @@ class (they deflate 100:1 to 700:1), and the standard library's zlib inflates su
 ``zipfile`` offers no choice of inflater, so stored and deflated members are read here:
 
 - the member's local header is checked as ``zipfile.ZipFile.open`` checks it (its
-  signature, the name it repeats; patched data and strong encryption are left to
-  ``zipfile``, which refuses them);
+  signature, the name it repeats); encrypted members and patched data are left to
+  ``zipfile``;
 - its compressed bytes are read with positioned reads on a file handle of the member's
   own, so scans of one archive are inflated on several threads at once (``zipfile``'s
   members share one handle and take turns on its lock);
@@ -48,7 +48,7 @@ INFLATE_ERRORS: tuple[type[Exception], ...] = tuple({_inflater.error, zlib.error
 _LOCAL_HEADER = struct.Struct("<4s2B4HL2L2H")  # APPNOTE 4.3.7, as zipfile reads it
 _LOCAL_SIGNATURE = b"PK\x03\x04"
 _FLAG_UTF8 = 0x800
-_FLAGS_LEFT_TO_ZIPFILE = 0x20 | 0x40  # compressed patched data, strong encryption
+_FLAGS_LEFT_TO_ZIPFILE = 0x1 | 0x20 | 0x40  # encryption, compressed patched data, strong encryption
 _READ_BYTES = 1 << 16
 """Compressed bytes read at a time: a label file's 1 MiB of text inflates from a few KiB,
 and what a read leaves over is copied again on the next."""
@@ -143,7 +143,7 @@ class _MemberReader(io.RawIOBase):
         """Up to ``size`` uncompressed bytes (none when more compressed bytes are needed)."""
         if self._inflater is None:  # stored
             return self._read_compressed(size)
-        if not self._pending:  # at the end, an empty input: the output still held back
+        if not self._pending:  # none left at the end: an empty input drains what it holds
             self._pending = self._read_compressed(_READ_BYTES)
         data = self._inflater.decompress(self._pending, size)
         self._pending = self._inflater.unconsumed_tail

@@ -246,7 +246,7 @@ def _fast_integer(buf: np.ndarray, pos: Any) -> tuple[Any, Any, Any]:  # pragma:
 @nb.njit(cache=True, nogil=True, inline="always")
 def _fast_unsigned(buf: np.ndarray, pos: Any) -> tuple[Any, Any, Any]:  # pragma: no cover
     """``d{1,7}``, for a colour: ``(value, end, ok)``, as :func:`_fast_integer` without the
-    sign. A sign is no digit (not ok): such a line goes to the general path, which
+    sign. A sign is not a digit (not ok): such a line goes to the general path, which
     accepts ``-0`` and reports any other negative colour, as it did when this path took
     the sign and refused the negative value."""
     n_digits, digits = _digits_of(_load_u64(buf, pos))
