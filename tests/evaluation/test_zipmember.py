@@ -65,6 +65,45 @@ def test_members_read_as_zipfile_reads_them(
                 assert _read_all(stream, read_size) == data == archive.read(info)
 
 
+class _Unseekable(io.RawIOBase):
+    """A write-only stream zipfile cannot seek back in: it writes data descriptors."""
+
+    def __init__(self, target: io.BufferedWriter) -> None:
+        super().__init__()
+        self.target = target
+
+    def writable(self) -> bool:
+        return True
+
+    def write(self, data: bytes) -> int:  # type: ignore[override]
+        return self.target.write(data)
+
+
+def test_zip64_headers_and_data_descriptors_read_as_zipfile_reads_them(tmp_path: Path) -> None:
+    data = _labels([(4, 30_000), (7, 9)])
+    path = tmp_path / "s.zip"
+    with (
+        zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED) as archive,
+        archive.open("zip64.labels", "w", force_zip64=True) as member,
+    ):
+        member.write(data)
+    streamed = tmp_path / "streamed.zip"
+    with (
+        streamed.open("wb") as target,
+        zipfile.ZipFile(_Unseekable(target), "w", compression=zipfile.ZIP_DEFLATED) as archive,
+    ):
+        archive.writestr("described.labels", data)
+    for archive_path in (path, streamed):
+        with zipfile.ZipFile(archive_path) as archive:
+            (info,) = archive.infolist()
+            assert archive.read(info) == data
+        stream = open_member(archive_path, info)
+        assert stream is not None
+        with stream:
+            assert _read_all(stream, 5000) == data
+    assert info.flag_bits & 0x8  # the streamed member has a data descriptor
+
+
 def test_the_standard_zlib_gives_the_same_bytes(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
