@@ -246,6 +246,8 @@ def _zip_entries(
             problems.append(f"{name!r}: appears {count} times in the archive")
     entries: dict[str, SubmissionFile] = {}
     total = 0
+    # members are read on handles of their own (zipmember), opened by this path
+    archive_path = None if archive.filename is None else Path(archive.filename).absolute()
     for info in infos:
         if info.is_dir():
             continue
@@ -269,7 +271,7 @@ def _zip_entries(
         def opener(info: zipfile.ZipInfo = info) -> io.RawIOBase:
             limit = min(info.file_size, limits.max_member_bytes)
             member: io.RawIOBase | io.BufferedIOBase | None = (
-                None if archive.filename is None else open_member(Path(archive.filename), info)
+                None if archive_path is None else open_member(archive_path, info)
             )
             if member is None:  # another method: zipfile's ZipExtFile
                 member = cast(io.BufferedIOBase, archive.open(info))
