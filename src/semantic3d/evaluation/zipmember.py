@@ -49,6 +49,7 @@ _LOCAL_HEADER = struct.Struct("<4s2B4HL2L2H")  # APPNOTE 4.3.7, as zipfile reads
 _LOCAL_SIGNATURE = b"PK\x03\x04"
 _FLAG_UTF8 = 0x800
 _FLAGS_LEFT_TO_ZIPFILE = 0x1 | 0x20 | 0x40  # encryption, compressed patched data, strong encryption
+_TRUNCATED = "Compressed file ended before the end-of-stream marker was reached"  # zipfile's
 _READ_BYTES = 1 << 16
 """Compressed bytes read at a time: a label file's 1 MiB of text inflates from a few KiB,
 and what a read leaves over is copied again on the next."""
@@ -134,7 +135,7 @@ class _MemberReader(io.RawIOBase):
             return b""
         got = os.pread(self._fd, n, self._at)
         if not got:
-            raise EOFError("Compressed file ended before the end-of-stream marker was reached")
+            raise EOFError(_TRUNCATED)
         self._at += len(got)
         self._compressed_left -= len(got)
         return got
@@ -158,7 +159,7 @@ class _MemberReader(io.RawIOBase):
         if self._inflater.eof:
             return True
         if self._compressed_left <= 0 and not self._pending:
-            raise EOFError("Compressed file ended before the end-of-stream marker was reached")
+            raise EOFError(_TRUNCATED)
         return False
 
     def _check_end(self) -> None:
