@@ -40,8 +40,10 @@ def _text(values: np.ndarray) -> bytearray:
             st.integers(0, 6 * WINDOW - 1),
             st.sampled_from([b"x", b"\r", b" ", b"9", b"0"]),
             st.booleans(),  # the digit (True) or the line end
+            st.sampled_from([1, 5, 32, 40, 300]),  # lines spoilt alike from that line on
         ),
     ),
+    run_length=st.sampled_from([1, 3, 32, 33, 64, 1000, 10_000]),
     offsets=st.tuples(st.integers(0, 3), st.integers(0, 3)),
     n_threads=st.integers(1, 5),
     seed=st.integers(0, 2**16),
@@ -49,21 +51,28 @@ def _text(values: np.ndarray) -> bytearray:
 def test_the_counter_counts_the_windows_before_the_first_bad_line(
     n_windows: int,
     extra: int,
-    spoil: tuple[str, int, bytes, bool] | None,
+    spoil: tuple[str, int, bytes, bool, int] | None,
+    run_length: int,
     offsets: tuple[int, int],
     n_threads: int,
     seed: int,
 ) -> None:
     rng = np.random.default_rng(seed)
     n = n_windows * WINDOW + extra
-    truth, pred = rng.integers(0, 9, n), rng.integers(1, 9, n)
+    # labels in runs, as a scan's are (its blocks of one repeated pair counted at once),
+    # with the prediction's runs shifted against the truth's
+    runs = -(-n // run_length) + 1
+    truth = np.repeat(rng.integers(0, 9, runs), run_length)[:n]
+    shift = int(rng.integers(0, run_length))
+    pred = np.repeat(rng.integers(1, 9, runs), run_length)[shift : shift + n]
     texts = {"truth": _text(truth), "pred": _text(pred)}
     first_bad = n
     if spoil is not None:
-        which, line, byte, digit = spoil
+        which, line, byte, digit, n_spoilt = spoil
         line %= n
-        at = 2 * line + (0 if digit else 1)
-        texts[which][at : at + 1] = byte
+        for spoilt in range(line, min(n, line + n_spoilt)):
+            at = 2 * spoilt + (0 if digit else 1)
+            texts[which][at : at + 1] = byte
         # any byte in place of the line end is bad; truth accepts 0..8 and pred 1..8 here:
         # "9" is out of range for both, "0" for pred
         if not digit or byte in b"x\r 9" or (byte == b"0" and which == "pred"):

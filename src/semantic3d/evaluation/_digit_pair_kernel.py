@@ -25,55 +25,68 @@ from numpy.typing import NDArray
 WINDOW = 4096
 """Line pairs checked at once: a window either counts whole or not at all."""
 
-_LANES = 8  # interleaved counters: runs of one class do not wait on one cell
+_LANES = 8  # interleaved counters: pairs that differ do not wait on one cell
+_RUN = 32
+"""Pairs checked for being one pair repeated, counted then with one addition: labels come
+in runs (a scan's points are in sweep order: mean runs of 117 to 35,000 lines in the
+simulated and shared real scans, 87-100 % of their 32-line blocks one label), and a
+window counted this way in the pass that checks it goes at about twice the rate of a
+check pass and a count pass (and no slower for labels with no runs)."""
 _PAIR_ZERO = 0x0A30
 """``"0\\n"`` read as one little-endian 16-bit word."""
-
-
-@nb.njit(cache=True, nogil=True, inline="always")
-def _window_is_valid(
-    truth: NDArray[np.uint16],
-    pred: NDArray[np.uint16],
-    start: int,
-    truth_low: np.uint16,
-    truth_span: np.uint16,
-    pred_low: np.uint16,
-    pred_span: np.uint16,
-) -> bool:  # pragma: no cover - compiled
-    """Whether the ``WINDOW`` pairs from ``start`` are ``d\\n`` lines of values in range.
-
-    A word minus ``"0\\n"`` is the value exactly when it is at most 9, and the value lies
-    in ``low..low + span`` exactly when it less ``low`` (wrapping) is at most ``span``:
-    the largest such difference of the window says it (branch-free: vectorised).
-    """
-    # a slice indexed from 0: numba then wraps no index as a negative one (that check
-    # per word kept the loop scalar: 0.8 against 1.0 G pairs/s with the counting here)
-    truth_window = truth[start : start + WINDOW]
-    pred_window = pred[start : start + WINDOW]
-    worst_truth = np.uint16(0)
-    worst_pred = np.uint16(0)
-    for k in range(WINDOW):
-        t = np.uint16(truth_window[k] - np.uint16(_PAIR_ZERO))
-        p = np.uint16(pred_window[k] - np.uint16(_PAIR_ZERO))
-        worst_truth = max(worst_truth, np.uint16(t - truth_low))
-        worst_pred = max(worst_pred, np.uint16(p - pred_low))
-    return bool(worst_truth <= truth_span) and bool(worst_pred <= pred_span)
+if WINDOW % _RUN or _RUN % _LANES:
+    raise ValueError("a window is whole blocks of _RUN pairs, a block whole rows of _LANES")
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
 def _count_window(
-    truth: NDArray[np.uint16], pred: NDArray[np.uint16], start: int, lanes: NDArray[np.int64]
-) -> None:  # pragma: no cover - compiled
-    """Count the ``WINDOW`` checked pairs from ``start``: ``lanes[lane * 256 + t * 16 + p]``.
+    truth: NDArray[np.uint16],
+    pred: NDArray[np.uint16],
+    start: int,
+    lanes: NDArray[np.int64],
+    truth_low: np.uint16,
+    truth_span: np.uint16,
+    pred_low: np.uint16,
+    pred_span: np.uint16,
+    sign: int,
+) -> bool:  # pragma: no cover - compiled
+    """Add ``sign`` for each of the ``WINDOW`` pairs from ``start`` to its cell,
+    ``lanes[lane * 256 + t * 16 + p]``; whether they are all ``d\n`` lines of values in range.
 
-    In a checked ``d\\n`` word the low nibble is the digit (``'0'`` is 0x30).
+    Counted before they are known to be valid (one pass over the text): a caller told
+    False takes the window back by counting it again with ``sign`` -1 (every word, valid
+    or not, has a cell: its low nibbles). A word minus ``"0\n"`` is the value exactly when
+    it is at most 9, and the value lies in ``low..low + span`` exactly when it less
+    ``low`` (wrapping) is at most ``span``: the window's largest such difference says it.
+    In a checked ``d\n`` word the low nibble is the digit (``'0'`` is 0x30). A block of
+    :data:`_RUN` pairs that are all the same pair is counted with one addition.
     """
+    # a slice indexed from 0: numba then wraps no index as a negative one (that check
+    # per word kept the loop scalar)
     truth_window = truth[start : start + WINDOW]
     pred_window = pred[start : start + WINDOW]
-    for k in range(0, WINDOW, _LANES):
-        for lane in range(_LANES):
-            cell = ((truth_window[k + lane] & 15) << 4) | (pred_window[k + lane] & 15)
-            lanes[lane * 256 + cell] += 1
+    worst_truth = np.uint16(0)
+    worst_pred = np.uint16(0)
+    for block in range(0, WINDOW, _RUN):
+        first_truth = truth_window[block]
+        first_pred = pred_window[block]
+        differs = np.uint16(0)
+        for k in range(block, block + _RUN):
+            t = truth_window[k]
+            p = pred_window[k]
+            differs |= (t ^ first_truth) | (p ^ first_pred)
+            worst_truth = max(
+                worst_truth, np.uint16(np.uint16(t - np.uint16(_PAIR_ZERO)) - truth_low)
+            )
+            worst_pred = max(worst_pred, np.uint16(np.uint16(p - np.uint16(_PAIR_ZERO)) - pred_low))
+        if differs == 0:
+            lanes[((first_truth & 15) << 4) | (first_pred & 15)] += sign * _RUN
+            continue
+        for k in range(block, block + _RUN, _LANES):
+            for lane in range(_LANES):
+                cell = ((truth_window[k + lane] & 15) << 4) | (pred_window[k + lane] & 15)
+                lanes[lane * 256 + cell] += sign
+    return bool(worst_truth <= truth_span) and bool(worst_pred <= pred_span)
 
 
 @nb.njit(cache=True, nogil=True, parallel=True)
@@ -120,9 +133,13 @@ def count_digit_pairs(
         lanes = np.zeros(_LANES * 256, dtype=np.int64)
         for window in range(run * per_run, min(n_windows, (run + 1) * per_run)):
             start = window * WINDOW
-            if not _window_is_valid(truth_words, pred_words, start, t_low, t_span, p_low, p_span):
+            if not _count_window(
+                truth_words, pred_words, start, lanes, t_low, t_span, p_low, p_span, 1
+            ):
+                _count_window(
+                    truth_words, pred_words, start, lanes, t_low, t_span, p_low, p_span, -1
+                )
                 break
-            _count_window(truth_words, pred_words, start, lanes)
             good[run] += 1
         counts[run] = lanes
     counted = 0
