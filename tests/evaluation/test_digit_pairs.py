@@ -115,8 +115,13 @@ def test_the_counter_adds_to_its_table_and_ignores_a_short_tail() -> None:
 N_LINES = 700_000  # more than the counter's first read (1 MiB a file), so it runs
 
 
-def _scan_texts(seed: int) -> tuple[bytearray, bytearray]:
+def _scan_texts(seed: int, runs: bool = False) -> tuple[bytearray, bytearray]:
     rng = np.random.default_rng(seed)
+    if runs:  # as a scan's: runs of one class, the prediction wrong in runs too
+        truth = np.repeat(rng.integers(0, 9, N_LINES), rng.geometric(1 / 100, N_LINES))
+        wrong = np.repeat(rng.random(N_LINES) < 0.2, rng.geometric(1 / 50, N_LINES))
+        truth, wrong = truth[:N_LINES], wrong[:N_LINES]
+        return _text(truth), _text(np.where(wrong, truth % 8 + 1, np.maximum(truth, 1)))
     truth = rng.integers(0, 9, N_LINES)
     pred = np.where(rng.random(N_LINES) < 0.8, np.maximum(truth, 1), rng.integers(1, 9, N_LINES))
     return _text(truth), _text(pred)
@@ -162,7 +167,7 @@ def test_long_files_give_what_the_general_parsers_alone_give(
     sub_dir.mkdir()
     members = {}
     for i, name in enumerate(("a.labels", "b.labels")):
-        truth, pred = _scan_texts(i)
+        truth, pred = _scan_texts(i, runs=i == 0)
         texts = {"truth": truth, "pred": pred}
         edits = CASES[case] if i == 0 else {}
         for which, changes in edits.items():
