@@ -51,14 +51,14 @@ def _count_window(
     sign: int,
 ) -> bool:  # pragma: no cover - compiled
     """Add ``sign`` for each of the ``WINDOW`` pairs from ``start`` to its cell,
-    ``lanes[lane * 256 + t * 16 + p]``; whether they are all ``d\n`` lines of values in range.
+    ``lanes[lane * 256 + t * 16 + p]``; whether they are all ``d\\n`` lines of values in range.
 
     Counted before they are known to be valid (one pass over the text): a caller told
     False takes the window back by counting it again with ``sign`` -1 (every word, valid
-    or not, has a cell: its low nibbles). A word minus ``"0\n"`` is the value exactly when
+    or not, has a cell: its low nibbles). A word minus ``"0\\n"`` is the value exactly when
     it is at most 9, and the value lies in ``low..low + span`` exactly when it less
     ``low`` (wrapping) is at most ``span``: the window's largest such difference says it.
-    In a checked ``d\n`` word the low nibble is the digit (``'0'`` is 0x30). A block of
+    In a checked ``d\\n`` word the low nibble is the digit (``'0'`` is 0x30). A block of
     :data:`_RUN` pairs that are all the same pair is counted with one addition.
     """
     # a slice indexed from 0: numba then wraps no index as a negative one (that check
