@@ -14,15 +14,16 @@ files, in the same run:
 - ``iter_points``: an ASCII scan (``--points`` lines of the street scene) streamed
   through :func:`semantic3d.io.iter_ascii_points`; peer: ``pyarrow.csv.read_csv`` with
   ``pyarrow.set_cpu_count(N)`` (its block reader, every block on its own thread);
-- ``read_labels``: the scan's ``.labels`` 32 times over (one file); peer:
-  ``pyarrow.csv.read_csv`` of the same file;
+- ``read_labels``: the scan's ``.labels`` 32 times over (one file; 4 times that on 16
+  cores: :func:`label_copies`); peer: ``pyarrow.csv.read_csv`` of the same file;
 - ``simulate``: :func:`semantic3d.datasets.simulator.simulate` of that scan (text written);
 - ``predict``: the covariance baseline on that one scan, tiled whatever its size
   (``predict_scan``, labels and run record written), with the model trained below;
 - ``train``: :func:`semantic3d.baselines.covariance.training.train_covariance_model` on the
   Oakland scans (``--oakland``; three simulated scans when absent), default configuration;
 - ``evaluate``: :func:`semantic3d.evaluation.evaluate_submission` of 8 scans (links to the
-  scan's labels 4 times over: ground truth and a prediction of it), label pairs per second.
+  scan's labels 4 times over, 16 on 16 cores: ground truth and a prediction of it), label
+  pairs per second.
 
 Each row gives the rate (items per second, wall clock), CPU seconds (and their ratio to
 the peer's, which a loaded machine disturbs less than wall time), the mean number of the
@@ -41,9 +42,10 @@ time. The load average is printed beside every row: compare rows of one run.
 ``--where`` also names the code that runs while at most a quarter of the threads do, at
 the largest thread count: the serial parts to remove next. ``--timeline`` records one more
 ``predict`` run at the largest count on a timeline (:mod:`semantic3d.core.timeline`: the
-spill, each tile's pyramid, features, forest and cut, every square of the cuts, the
-labels written) and prints what ran after the last tile started: which tiles' chains of
-steps the other threads waited for. The spans go to ``bench_scaling_timeline.json``.
+spill, each tile's pyramid, features and the parts of their levels, forest and cut, every
+square of the cuts, the labels written) and prints what ran after the last tile started:
+which tiles' chains of steps the other threads waited for (with the threads of a tile's
+parts at their start and end). The spans go to ``bench_scaling_timeline.json``.
 Writes ``benchmarks/out/bench_scaling.json``.
 """
 
@@ -237,7 +239,7 @@ def child(job: dict[str, Any]) -> dict[str, Any]:
     elif path == "read_labels":
         from semantic3d.io import read_labels
 
-        labels = Path(job["labels"])  # the scan's labels, N_EVALUATED_SCANS times over
+        labels = Path(job["labels"])  # the evaluated files' labels, one after another
 
         def run() -> int:
             return int(read_labels(labels).size)
@@ -297,15 +299,16 @@ def child(job: dict[str, Any]) -> dict[str, Any]:
         from semantic3d.evaluation import custom_challenge, evaluate_submission
 
         truth, predicted = work / "truth", work / "submission"
+        copies = int(job.get("label_copies", 4))  # the scan's labels in each file
 
         def run() -> int:
             evaluate_submission(predicted, challenge=custom_challenge(truth))
-            return 4 * N_EVALUATED_SCANS * int(job["scan_points"])  # label pairs read
+            return copies * N_EVALUATED_SCANS * int(job["scan_points"])  # label pairs read
 
         run_small = None
         peer = None
         pairs = sorted(truth.glob("*.labels")) + sorted(predicted.glob("*.labels"))
-        floor = _ReadFloor(pairs, n, 4 * N_EVALUATED_SCANS * int(job["scan_points"]))
+        floor = _ReadFloor(pairs, n, copies * N_EVALUATED_SCANS * int(job["scan_points"]))
     else:
         raise SystemExit(f"unknown path {path}")
     if run_small is not None:
@@ -338,6 +341,11 @@ def child(job: dict[str, Any]) -> dict[str, Any]:
 
 
 # --- the driver ---------------------------------------------------------------------------
+def label_copies(cores: int) -> int:
+    """The scan's labels in each evaluated file (``read_labels`` reads 8 files' worth):
+    4 for every 4 cores, at least 4, so that a run on many threads lasts long enough to
+    time (on 16 cores, 4 copies were read in 0.07-0.14 s)."""
+    return 4 * max(1, cores // 4)
 
 
 def _run_child(job: dict[str, Any]) -> dict[str, Any]:
@@ -396,6 +404,7 @@ def _prepare(args: argparse.Namespace, work: Path) -> dict[str, Any]:
         find_labelled_scans,
         train_covariance_model,
     )
+    from semantic3d.core.threads import available_cores
     from semantic3d.datasets.simulator import simulate
 
     scan = simulate("street", out=work / "scan", n_points=args.points, seed=1).scans[0]
@@ -420,10 +429,12 @@ def _prepare(args: argparse.Namespace, work: Path) -> dict[str, Any]:
     )
     (work / "labels").mkdir()
     labels, per_scan = work / "labels" / "many.labels", work / "labels" / "scan.labels"
-    for path, copies in ((labels, 4 * N_EVALUATED_SCANS), (per_scan, 4)):
+    copies = label_copies(available_cores())
+    for path, times in ((labels, copies * N_EVALUATED_SCANS), (per_scan, copies)):
+        text = scan.labels_path.read_bytes()
         with path.open("wb") as stream:
-            for _ in range(copies):
-                stream.write(scan.labels_path.read_bytes())
+            for _ in range(times):
+                stream.write(text)
     for folder in ("truth", "submission"):
         (work / folder).mkdir()
         for number in range(N_EVALUATED_SCANS):
@@ -435,6 +446,7 @@ def _prepare(args: argparse.Namespace, work: Path) -> dict[str, Any]:
         "model": str(work / "model.s3dm"),
         "points": args.points,
         "scan_points": scan.n_points,
+        "label_copies": copies,
         "labels": str(labels),
         "work": str(work),
     }
@@ -503,6 +515,14 @@ def _print_timeline(timeline: dict[str, Any], n: int) -> None:
                     f"{name} {mine[0]['start_s']:.2f}-{mine[0]['end_s']:.2f}"
                     + ("" if threads is None else f" on {threads}")
                 )
+        levels = [s for s in steps if s["name"] == "levels"]
+        if levels:
+            attrs = levels[0]["attrs"]
+            parts.append(
+                f"levels {attrs.get('levels')} in {attrs.get('parts')} parts "
+                f"{levels[0]['start_s']:.2f}-{levels[0]['end_s']:.2f} on "
+                f"{attrs.get('threads')}-{attrs.get('threads_after')}"
+            )
         squares = [s for s in steps if s["name"] == "cut square"]
         if squares:
             longest = max(squares, key=lambda s: s["end_s"] - s["start_s"])

@@ -171,6 +171,135 @@ def test_a_nested_maps_tail_lends_its_idle_threads_to_the_enclosing_map(ordered:
     assert seen["a"] == ([0, 1, 2], 3)  # its threads back once the map ended
 
 
+def test_a_nested_map_told_not_to_lend_keeps_its_threads_through_its_tail() -> None:
+    """With ``lend_tail=False`` the task of 3 threads keeps them while its long item runs
+    alone: the next task (of 2) starts only once the nested map has ended."""
+    long_done = threading.Event()
+    seen: dict[str, object] = {}
+
+    def inner(item: int) -> int:
+        if item == 0:
+            time.sleep(0.1)
+            long_done.set()
+        return item
+
+    def outer(name: str) -> str:
+        if name == "a":
+            assert list(map_in_threads(inner, range(3), lend_tail=False)) == [0, 1, 2]
+            seen["a budget"] = thread_budget()
+        else:
+            seen["b started after the long item"] = long_done.is_set()
+        return name
+
+    shares = {"a": 3, "b": 2}
+    with thread_limit(4):
+        done = list(map_in_threads(outer, "ab", numba_threads_per_task=shares.__getitem__))
+    assert done == ["a", "b"]
+    assert seen == {"b started after the long item": True, "a budget": 3}
+
+
+def _growing(threads_of: dict[str, int], n_items: int) -> dict[str, object]:
+    """Map tasks "big" and "small" on a map of their shares' sum; "big" maps ``n_items``
+    items of one thread each, which wait for "small" to end and then overlap a while.
+    Returns the most items of "big" running at once, the most threads held at once
+    (big's items plus small's share) and big's budget after its nested map."""
+    lock = threading.Lock()
+    state = {"items": 0, "most items": 0, "held": 0, "most held": 0}
+    started = threading.Event()  # big's first items are running
+    small_done = threading.Event()
+
+    def add(key: str, count: int) -> None:
+        with lock:
+            state[key] += count
+            state[f"most {key}"] = max(state[f"most {key}"], state[key])
+
+    def item(number: int) -> int:
+        add("items", 1)
+        add("held", 1)
+        started.set()
+        small_done.wait(10)
+        time.sleep(0.03)
+        add("items", -1)
+        add("held", -1)
+        return number
+
+    def task(name: str) -> str:
+        if name == "small":
+            add("held", thread_budget())
+            started.wait(10)
+            time.sleep(0.02)
+            add("held", -thread_budget())
+            small_done.set()
+        else:
+            assert sorted(map_in_threads(item, range(n_items), ordered=False)) == list(
+                range(n_items)
+            )
+            state["budget after"] = thread_budget()
+        return name
+
+    with thread_limit(sum(threads_of.values())):
+        done = list(map_in_threads(task, ["big", "small"], numba_threads_per_task=threads_of.get))
+    assert done == ["big", "small"]
+    return state
+
+
+def test_a_nested_map_grows_with_the_threads_the_enclosing_maps_ended_tasks_left() -> None:
+    """A task of 3 threads maps 12 items of one thread: once the other task (1 thread) has
+    ended, its thread joins them (4 at once), never more than the map's 4 threads in all;
+    the task keeps it after its nested map."""
+    state = _growing({"big": 3, "small": 1}, 12)
+    assert state["most items"] == 4
+    assert state["most held"] <= 4
+    assert state["budget after"] == 4
+
+
+def test_a_nested_map_of_a_one_thread_task_grows_too() -> None:
+    """On one thread, inside a map's task, the nested map still runs on a pool: when the
+    other task ends, the two threads run its items (never more than the map's two)."""
+    state = _growing({"big": 1, "small": 1}, 6)
+    assert state["most items"] == 2
+    assert state["most held"] <= 2
+
+
+def test_a_nested_map_does_not_grow_while_the_enclosing_map_has_tasks_to_start() -> None:
+    """The map's third task waits for the threads of the first two: the nested map of the
+    first does not take the second's thread before the third has started."""
+    lock = threading.Lock()
+    most = [0, 0]
+    third_started = threading.Event()
+    second_done = threading.Event()
+
+    def item(number: int) -> int:
+        with lock:
+            most[0] += 1
+            most[1] = max(most[1], most[0])
+        second_done.wait(10)
+        time.sleep(0.02)
+        with lock:
+            most[0] -= 1
+        return number
+
+    def task(name: str) -> str:
+        if name == "first":
+            list(map_in_threads(item, range(8)))
+        elif name == "second":
+            time.sleep(0.05)
+            second_done.set()
+        else:
+            third_started.set()
+            time.sleep(0.2)  # holds its 2 threads while the first's items run
+        return name
+
+    shares = {"first": 2, "second": 1, "third": 2}
+    with thread_limit(4):
+        done = list(
+            map_in_threads(task, ["first", "second", "third"], numba_threads_per_task=shares.get)
+        )
+    assert done == ["first", "second", "third"]
+    assert third_started.is_set()
+    assert most[1] == 2  # the second's thread went to the third, not to the first's items
+
+
 def test_a_nested_map_outside_a_task_keeps_its_threads() -> None:
     with thread_limit(3):
         assert list(map_in_threads(lambda item: thread_budget(), range(4))) == [1, 1, 1, 1]

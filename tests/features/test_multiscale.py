@@ -332,6 +332,45 @@ def test_a_tiles_levels_computed_in_parts_give_the_same_rows_and_neighbours(
         np.testing.assert_array_equal(part_lists[tile], lists)
 
 
+def test_tiles_on_one_thread_of_a_large_map_cut_their_levels_into_parts_the_same_rows(
+    scene: PointCloud, tmp_path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Mapped on 4 threads, a tile whose task has one thread still cuts its large levels
+    into parts (which threads other tiles leave can join), every level's parts in one
+    map: the rows and neighbour lists of the whole scan, bit for bit."""
+    import semantic3d.features.tiling as tiling
+    from semantic3d.core.threads import thread_budget, thread_limit
+
+    config = FeatureConfig(**{**_fields(SMALL), "cylinder_features": CYLINDER_FEATURES})
+    table = compute_multiscale_features(scene, config=config)
+    expected = table.point_values()
+    cuts: list[tuple[int, int]] = []  # (the task's threads, parts asked for)
+    part_blocks = tiling.part_blocks
+
+    def spied(queries, n_parts, reach):  # type: ignore[no-untyped-def]
+        cuts.append((thread_budget(), n_parts))
+        return part_blocks(queries, n_parts, reach)
+
+    monkeypatch.setattr(tiling, "part_blocks", spied)
+    monkeypatch.setattr(tiling, "_MIN_PART_QUERIES", 40)
+    got = np.full_like(expected, np.nan)
+    with (
+        thread_limit(4),
+        TiledScan(
+            _chunks(scene, 7000),
+            config=config,
+            tile_size_m=6.4,
+            workdir=tmp_path,
+            whole_level_points=0,
+        ) as scan,
+    ):
+        assert len(scan.tiles) > 4
+        for tile in scan.map_tiles(lambda features: features, n_threads=4):
+            got[tile.point_indices] = tile.table.point_values()
+    assert (1, tiling._GROWING_PARTS) in cuts  # a one-thread tile's level in parts
+    assert np.array_equal(got, expected)
+
+
 def test_pyramids_kept_in_memory_are_read_from_there_and_written_for_another_process(
     scene: PointCloud, tmp_path
 ) -> None:

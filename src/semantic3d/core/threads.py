@@ -35,6 +35,7 @@ __all__ = [
     "available_cores",
     "concurrent_kernels_supported",
     "current_thread_limit",
+    "enclosing_map_threads",
     "iter_ahead",
     "map_in_threads",
     "numba_threads",
@@ -202,6 +203,7 @@ def map_in_threads(
     ordered: bool = True,
     numba_threads_per_task: Callable[[T], int] | int = 1,
     max_pending: int | None = None,
+    lend_tail: bool = True,
     name: str = "semantic3d",
 ) -> Generator[R, None, None]:
     """``function(item)`` for every item on a pool of ``n_threads`` (default the budget).
@@ -212,11 +214,15 @@ def map_in_threads(
     threads (a number, or a function of the item): 1 where tasks alone fill the cores. A
     task starts only when its threads are free, so the tasks running at once never use
     more than ``n_threads`` threads together. Run inside another map's task with one
-    thread a task, it lends that map the threads its tail leaves idle (:class:`_TailLender`).
+    thread a task, it lends that map the threads its tail leaves idle (unless
+    ``lend_tail`` is False: many short items, whose tail is short, while the task's next
+    step needs its threads back), and once that map has started all its tasks, it takes a
+    share of the threads that map's ended tasks gave back while it still has items
+    waiting (:class:`_TailLender`).
     The first exception raised by a task is raised here (the earliest in input order when
     ``ordered``); tasks not started are cancelled and running ones are waited for, also
     when the caller stops iterating. With one thread everything runs in the calling thread
-    (same results).
+    (same results), unless it can grow inside another map's task.
     """
     n_threads = thread_budget() if n_threads is None else max(1, int(n_threads))
     iterator = iter(items)
@@ -225,26 +231,39 @@ def map_in_threads(
             with numba_threads(n_threads):
                 yield function(item)
         return
-    if n_threads == 1:
+    if n_threads == 1 and not (numba_threads_per_task == 1 and enclosing_map_threads() > 1):
         for item in iterator:
             with numba_threads(_task_threads(numba_threads_per_task, item, 1)):
                 yield function(item)
         return
-    limit = max(n_threads, 2 * n_threads if max_pending is None else int(max_pending))
+
+    def pending_limit(threads: int) -> int:
+        return max(threads, 2 * threads if max_pending is None else int(max_pending))
+
+    limit = pending_limit(n_threads)
     tokens = _Tokens(n_threads)
-    # inside an enclosing map's task: the tail's idle threads are lent to that map
-    lender = _TailLender() if numba_threads_per_task == 1 else None
+    # inside an enclosing map's task: the tail's idle threads are lent to that map, and
+    # the threads its ended tasks gave back are taken while items still wait
+    lender = _TailLender(lend=lend_tail) if numba_threads_per_task == 1 else None
+    workers = n_threads if lender is None else max(n_threads, lender.ceiling)
 
     def run(item: T, ticket: int) -> R:
         count = _task_threads(numba_threads_per_task, item, n_threads)
         with tokens.held(count, ticket), numba_threads(count):
             return function(item)
 
-    pool = ThreadPoolExecutor(max_workers=n_threads, thread_name_prefix=name)
+    pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix=name)
     pending: deque[Future[R]] = deque()
     try:
         exhausted = False
         while True:
+            if lender is not None and n_threads < workers:
+                waiting = tokens.waiting() if exhausted else workers
+                grown = lender.grow(min(waiting, workers - n_threads))
+                if grown:
+                    tokens.give_back(grown)
+                    n_threads += grown
+                    limit = pending_limit(n_threads)
             while not exhausted and len(pending) < limit:
                 try:
                     item = next(iterator)
@@ -308,6 +327,7 @@ class _Tokens:
     them in the order they were submitted (a large task is not starved by small ones)."""
 
     def __init__(self, n: int) -> None:
+        self.total = n  # the map's threads
         self.free = n
         self.turn = 0
         self.tickets = 0
@@ -349,15 +369,22 @@ class _Tokens:
                 self.running -= 1
             self.give_back(held[1])
 
-    def take_spare(self) -> int:
+    def take_spare(self, at_most: int | None = None) -> int:
         """Once every task of the map has started: a running task's share of the free
-        tokens (taken; 0 while tasks still wait for theirs)."""
+        tokens, ``at_most`` of them (taken; 0 while tasks still wait for theirs)."""
         with self.condition:
             if not self.draining or self.turn != self.tickets or self.free <= 0:
                 return 0
             taken = -(-self.free // max(1, self.running))
+            if at_most is not None:
+                taken = max(0, min(taken, at_most))
             self.free -= taken
             return taken
+
+    def waiting(self) -> int:
+        """Tasks submitted that have not started yet."""
+        with self.condition:
+            return self.tickets - self.turn
 
     def give_back(self, count: int) -> None:
         with self.condition:
@@ -397,6 +424,13 @@ def serial_section() -> Iterator[None]:
         _task.budget = held[1]
 
 
+def enclosing_map_threads() -> int:
+    """In a thread map's task, the map's threads: the most this task's nested maps of one
+    thread a task can come to run on (:func:`map_in_threads`); the budget elsewhere."""
+    held = getattr(_task, "held", None)
+    return thread_budget() if held is None else int(held[0].total)
+
+
 def take_free_threads() -> int:
     """In a thread map's task, once the map has started its last task: take a share of the
     threads that finished tasks gave back, for numba's kernels and :func:`thread_budget` in
@@ -417,27 +451,51 @@ def take_free_threads() -> int:
 
 
 class _TailLender:
-    """Lends an enclosing map the threads a nested map's tail leaves idle.
+    """Lends an enclosing map the threads a nested map's tail leaves idle, and grows the
+    nested map with the threads the enclosing map's ended tasks gave back.
 
-    A map run inside another map's task (a tile's graph cuts, one thread each) holds the
-    task's threads until its last item ends; once every item has been handed out, the
-    task keeps as many as items still run or wait (at least one) and gives the rest back,
-    so another task of the enclosing map can start on them. What it gave is taken back
-    afterwards as far as it is free (never more threads than the enclosing map's at
-    once). Outside a map's task it does nothing. Results do not depend on it.
+    A map run inside another map's task (a tile's graph cuts or parts, one thread each)
+    holds the task's threads until its last item ends; once every item has been handed
+    out, the task keeps as many as items still run or wait (at least one) and gives the
+    rest back, so another task of the enclosing map can start on them. What it gave is
+    taken back afterwards as far as it is free (never more threads than the enclosing
+    map's at once). Once the enclosing map has started all its tasks, the nested map also
+    takes a share of its free threads while it has items waiting (:meth:`grow`): a large
+    task that started on a few threads goes on with those its neighbours left, instead
+    of them idling until its next step. Outside a map's task it does nothing. Results do
+    not depend on it.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, *, lend: bool = True) -> None:
         self.held = getattr(_task, "held", None)  # the calling task's [tokens, count]
         self.count = 0 if self.held is None else int(self.held[1])
+        self.lend = lend
 
     @property
     def lending(self) -> bool:
-        return self.held is not None and self.count > 1
+        return self.lend and self.held is not None and self.count > 1
+
+    @property
+    def ceiling(self) -> int:
+        """The most threads the nested map can come to run on: the enclosing map's."""
+        return 0 if self.held is None else int(self.held[0].total)
+
+    def grow(self, at_most: int) -> int:
+        """Take up to ``at_most`` of the enclosing map's free threads for the task (a
+        running task's share; none while that map's tasks still wait); return how many."""
+        if self.held is None or at_most <= 0:
+            return 0
+        taken = int(self.held[0].take_spare(at_most))
+        if taken:
+            self.held[1] += taken
+            self.count = max(self.count, int(self.held[1]))
+            _set_numba_threads_here(self.held[1])
+            _task.budget = self.held[1]
+        return taken
 
     def keep(self, busy: int) -> None:
         """Keep ``busy`` of the task's threads (at least one), give back the others."""
-        if self.held is None:
+        if self.held is None or not self.lend:
             return
         keep = max(1, busy)
         if self.held[1] > keep:

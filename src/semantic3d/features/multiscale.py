@@ -291,6 +291,17 @@ def fill_level_columns(
     put_rows(block, inverse, columns, 0)  # columns[:] = block[inverse]
 
 
+def level_rows(
+    voxel_of_row: NDArray[np.int64],
+) -> tuple[NDArray[np.int64], NDArray[np.int64] | None]:
+    """What :func:`fill_level_columns` computes, for a caller that computes it later:
+    the distinct sorted voxels of ``voxel_of_row``, and the inverse whose
+    ``put_rows(block, inverse, columns, 0)`` copies their rows to every row (None when the
+    rows already are their voxels in order: the columns are filled in place)."""
+    needed, inverse, in_order = _distinct(voxel_of_row)
+    return needed, None if in_order else inverse
+
+
 def distinct_voxels(
     voxel_of_row: NDArray[np.int64],
 ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:

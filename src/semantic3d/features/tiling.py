@@ -43,6 +43,7 @@ from numpy.typing import ArrayLike, NDArray
 from semantic3d.core.errors import ShapeError
 from semantic3d.core.pointcloud import PointCloud
 from semantic3d.core.threads import (
+    enclosing_map_threads,
     iter_ahead,
     map_in_threads,
     serial_section,
@@ -68,6 +69,7 @@ from semantic3d.features.multiscale import (
     distinct_voxels,
     fill_level_columns,
     level_reach,
+    level_rows,
 )
 from semantic3d.features.neighbourhoods import LevelIndex
 from semantic3d.features.pyramid import build_pyramid, grid_origin
@@ -96,6 +98,17 @@ _PARTS_PER_THREAD = 4
 
 _MIN_PART_QUERIES = 10_000
 """The fewest queries a part holds (a part builds its own k-d tree over its box)."""
+
+_GROWING_MAP_THREADS = 4
+"""A tile on one thread of a map of at least this many threads computes its large levels
+in parts too (:data:`_GROWING_PARTS`): the parts then go on with the threads other tiles
+leave (the nested map grows), instead of one thread doing the level alone while they idle.
+Below it the parts' halos would cost more than the few threads they could gain."""
+
+_GROWING_PARTS = 4
+"""Parts of a large level of a tile on one thread of a large map: one after another on
+one thread, 4 parts cost what one piece does (a 335 k-voxel level: 8 parts +3-18 %,
+16 parts +20-32 %), and can run on 4 threads once other tiles leave them."""
 
 _COST_CELL_RADII = 4.0
 """A part's work is estimated from the level's points per square this many cylinder radii
@@ -149,6 +162,17 @@ class _WholeLevel:
 
     keys: NDArray[np.int64]
     rows: NDArray[np.float32]
+    neighbour_keys: NDArray[np.int64] | None
+
+
+@dataclass(frozen=True, slots=True)
+class _LevelAsk:
+    """A tile's level to compute tile by tile: its voxels' positions (``queries``), where
+    their rows go (``out``) and, for level 0, where their neighbours' keys go."""
+
+    number: int
+    queries: NDArray[np.float64]
+    out: NDArray[np.float32]
     neighbour_keys: NDArray[np.int64] | None
 
 
@@ -633,28 +657,23 @@ class TiledScan:
         values = np.empty((voxels.size, config.n_features), np.float32)
         # level 0 (one row per voxel, in row order) also gives every row its k-NN
         neighbour_keys = np.empty((voxels.size, config.k_neighbours), np.int64)
+        take_free_threads()  # a map's last tiles go on with the threads others left
+        asks: list[_LevelAsk] = []
+        copies: list[tuple[NDArray[np.float32], NDArray[np.int64], NDArray[np.float32]]] = []
         ancestor = voxels
         for number in range(config.n_levels):
-            take_free_threads()  # a map's last tiles go on with the threads others left
             if number:
                 ancestor = levels[number - 1].parent[ancestor]
+            columns = values[:, number * width : (number + 1) * width]
+            whole = self._whole_level(number)
+            if whole is not None:  # looked up in the rows of the level described whole
 
-            def compute(
-                needed: NDArray[np.int64], out: NDArray[np.float32], number: int = number
-            ) -> None:
-                whole = self._whole_level(number)
-                if whole is None:
-                    level = levels[number]
-                    self._exact_level_in_parts(
-                        tile,
-                        number,
-                        level.xyz
-                        if needed.size == level.n_voxels
-                        else take_rows(level.xyz, needed),
-                        neighbour_keys if number == 0 else None,
-                        out,
-                    )
-                else:
+                def look_up(
+                    needed: NDArray[np.int64],
+                    out: NDArray[np.float32],
+                    number: int = number,
+                    whole: _WholeLevel = whole,
+                ) -> None:
                     at = np.searchsorted(whole.keys, levels[number].keys[needed])
                     put_rows(whole.rows, at, out, 0)  # out[:] = whole.rows[at]
                     if number == 0 and whole.neighbour_keys is not None:
@@ -662,7 +681,20 @@ class TiledScan:
                         put_rows(whole.neighbour_keys, at, neighbour_keys[:, :found], 0)
                         neighbour_keys[:, found:] = -1
 
-            fill_level_columns(values[:, number * width : (number + 1) * width], ancestor, compute)
+                fill_level_columns(columns, ancestor, look_up)
+                continue
+            needed, inverse = level_rows(ancestor)
+            level = levels[number]
+            out = columns if inverse is None else np.empty((needed.size, width), np.float32)
+            queries = level.xyz if needed.size == level.n_voxels else take_rows(level.xyz, needed)
+            asks.append(_LevelAsk(number, queries, out, neighbour_keys if number == 0 else None))
+            if inverse is not None:
+                copies.append((out, inverse, columns))
+        with span("levels", levels=[a.number for a in asks], threads=thread_budget()) as attrs:
+            attrs["parts"] = self._exact_levels_in_parts(tile, asks)
+            attrs["threads_after"] = thread_budget()
+        for block, inverse, columns in copies:
+            put_rows(block, inverse, columns, 0)  # columns[:] = block[inverse]
         neighbours = rows_of_keys(neighbour_keys, levels[0].keys[voxels])
         # a scan of fewer than k level-0 voxels has fewer neighbours: as the whole-scan path
         width_found = min(config.k_neighbours, self._level_sizes[0])
@@ -735,35 +767,51 @@ class TiledScan:
         self._first_halo[number] = halo
         return halo
 
-    def _exact_level_in_parts(
-        self,
-        tile: Tile,
-        number: int,
-        queries: NDArray[np.float64],
-        neighbour_keys: NDArray[np.int64] | None,
-        out: NDArray[np.float32],
-    ) -> None:
-        """:meth:`_exact_level` of a tile's level queries, in parts computed at the same
-        time when the tile's task has several threads: blocks of a grid across the tile
+    def _exact_levels_in_parts(self, tile: Tile, asks: list[_LevelAsk]) -> int:
+        """:meth:`_exact_level` of a tile's levels' queries (``asks``), in parts computed
+        at the same time, every level's in one map: the threads a level's last parts leave
+        go to the other levels' parts, not to other tiles (which kept them) while the next
+        level waits. A level is cut into parts when the tile's task has several threads or
+        may get them (one thread of a large map: the map of parts grows as other tiles
+        end, :func:`map_in_threads`): blocks of a grid across the tile
         (strips of consecutive queries in key order, i.e. along x, each cut along y), of
         about equal work (:func:`part_blocks`), each part on one thread from its own box
         (its extent plus the first halo), so what one part runs alone another overlaps.
         Every row is exact whatever box it starts from: the same rows as in one piece.
+        The largest parts start first; the tile keeps its threads through the parts'
+        tail (short, the parts being many) for its next steps. Returns the number of parts.
 
         Blocks, not strips: a box's halo is a smaller share of a square than of a thin
         strip, which more threads make thinner; and the queries a part asks again lie
         along its edges, which for a strip cross the whole tile."""
         n_threads = thread_budget()
-        n = queries.shape[0]
-        n_parts = min(_PARTS_PER_THREAD * n_threads, n // _MIN_PART_QUERIES)
-        if n_threads <= 1 or n_parts <= 1:
-            self._exact_level(tile, number, queries, neighbour_keys, out=out)
-            return
-        blocks = part_blocks(
-            queries, n_parts, _COST_CELL_RADII * self.config.cylinder_radius_m(number)
-        )
+        if n_threads > 1:
+            planned = _PARTS_PER_THREAD * n_threads
+        else:  # on one thread: parts only where other tiles' threads may join them
+            planned = _GROWING_PARTS if enclosing_map_threads() >= _GROWING_MAP_THREADS else 1
+        pieces: list[tuple[float, _LevelAsk, tuple[int, int, float, float] | None]] = []
+        for ask in asks:
+            n = ask.queries.shape[0]
+            n_parts = min(planned, n // _MIN_PART_QUERIES)
+            if n_parts <= 1:
+                pieces.append((n, ask, None))
+                continue
+            blocks = part_blocks(
+                ask.queries, n_parts, _COST_CELL_RADII * self.config.cylinder_radius_m(ask.number)
+            )
+            pieces.extend((n / len(blocks), ask, block) for block in blocks)
+        if len(pieces) == 1:  # one level in one piece: its kernels on every thread
+            _, ask, _ = pieces[0]
+            self._exact_level(tile, ask.number, ask.queries, ask.neighbour_keys, out=ask.out)
+            return 1
+        pieces.sort(key=lambda piece: -piece[0])  # stable: a level's blocks stay in order
 
-        def part(block: tuple[int, int, float, float]) -> None:
+        def compute(piece: tuple[float, _LevelAsk, tuple[int, int, float, float] | None]) -> None:
+            _, ask, block = piece
+            queries, out, neighbour_keys = ask.queries, ask.out, ask.neighbour_keys
+            if block is None:
+                self._exact_level(tile, ask.number, queries, neighbour_keys, out=out)
+                return
             start, stop, y_low, y_high = block
             strip_y = queries[start:stop, 1]
             rows = start + np.flatnonzero((strip_y >= y_low) & (strip_y < y_high))
@@ -778,7 +826,7 @@ class TiledScan:
             values = np.empty((rows.size, out.shape[1]), np.float32)
             self._exact_level(
                 tile,
-                number,
+                ask.number,
                 asked,
                 found,
                 out=values,
@@ -790,8 +838,14 @@ class TiledScan:
             if neighbour_keys is not None and found is not None:
                 scatter_rows(found, rows, neighbour_keys)
 
-        for _ in map_in_threads(part, blocks, n_threads=n_threads, ordered=False, name="s3d-part"):
+        # no loan of the parts' tail to other tiles: the tail is short (many parts), and
+        # threads lent to start a tile come back only when it ends, long after this
+        # tile's forest and cut began on the few left (seen on 16 cores)
+        for _ in map_in_threads(
+            compute, pieces, n_threads=n_threads, ordered=False, lend_tail=False, name="s3d-part"
+        ):
             pass
+        return len(pieces)
 
     def _exact_level(
         self,
