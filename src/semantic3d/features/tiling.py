@@ -106,9 +106,10 @@ leave (the nested map grows), instead of one thread doing the level alone while 
 Below it the parts' halos would cost more than the few threads they could gain."""
 
 _GROWING_PARTS = 4
-"""Parts of a large level of a tile on one thread of a large map: one after another on
-one thread, 4 parts cost what one piece does (a 335 k-voxel level: 8 parts +3-18 %,
-16 parts +20-32 %), and can run on 4 threads once other tiles leave them."""
+"""Parts of a large level of a tile on one thread of a large map: computed one after
+another on one thread, 4 parts a level cost what one piece does (a tile of 335 k level-0
+voxels: 8 parts +3-18 %, 16 parts +20-32 %), and they can run on 4 threads once other
+tiles leave them."""
 
 _COST_CELL_RADII = 4.0
 """A part's work is estimated from the level's points per square this many cylinder radii
