@@ -69,6 +69,42 @@ def test_spans_of_every_thread_are_kept_with_their_own_parents_and_cpu() -> None
     assert len({s.number for s in timeline.spans}) == 16
 
 
+def test_the_tasks_of_a_thread_map_stay_under_the_step_that_mapped_them() -> None:
+    """Spans begun in a map's tasks (other threads) have the caller's open span as their
+    parent; a span begun outside, on a plain thread, has none; the caller's own spans
+    nest as before."""
+    from semantic3d.core.threads import map_in_threads, thread_limit
+    from semantic3d.core.timeline import inside, open_span
+
+    two = threading.Barrier(2)  # the first two tasks run at once, on two threads
+
+    def square(number: int) -> int:
+        with span("cut square", number=number):
+            if number < 2:
+                two.wait(10)
+            _busy(0.002)
+        return threading.get_ident()
+
+    with recording() as timeline, thread_limit(3):
+        with span("cut") as cut:
+            cut["threads"] = len(set(map_in_threads(square, range(6), ordered=False)))
+            assert open_span() != -1
+        stray = threading.Thread(target=square, args=(9,))
+        stray.start()
+        stray.join()
+        with inside(-1), span("after"):
+            pass
+    (cut_span,) = timeline.named("cut")
+    squares = timeline.named("cut square")
+    assert cut_span.attrs["threads"] > 1
+    assert sorted(s.attrs["number"] for s in squares) == [0, 1, 2, 3, 4, 5, 9]
+    for step in squares:
+        assert step.parent == (-1 if step.attrs["number"] == 9 else cut_span.number)
+        assert step.thread != cut_span.thread or step.attrs["number"] == 9
+    assert timeline.named("after")[0].parent == -1
+    assert open_span() == -1  # no recording open
+
+
 def test_a_span_that_raises_is_kept_and_the_error_passes() -> None:
     with recording() as timeline:
         with pytest.raises(ValueError, match="bad tile"), span("tile"):

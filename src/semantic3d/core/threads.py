@@ -30,6 +30,8 @@ from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
 from contextlib import contextmanager, suppress
 from typing import TypeVar
 
+from semantic3d.core.timeline import inside, open_span
+
 __all__ = [
     "ENVIRONMENT_VARIABLES",
     "available_cores",
@@ -247,9 +249,11 @@ def map_in_threads(
     lender = _TailLender(lend=lend_tail) if numba_threads_per_task == 1 else None
     workers = n_threads if lender is None else max(n_threads, lender.ceiling)
 
+    parent = open_span()  # the tasks' spans go under the step that mapped them
+
     def run(item: T, ticket: int) -> R:
         count = _task_threads(numba_threads_per_task, item, n_threads)
-        with tokens.held(count, ticket), numba_threads(count):
+        with tokens.held(count, ticket), numba_threads(count), inside(parent):
             return function(item)
 
     pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix=name)

@@ -24,7 +24,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
-__all__ = ["Span", "Timeline", "recording", "span"]
+__all__ = ["Span", "Timeline", "inside", "open_span", "recording", "span"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -125,6 +125,30 @@ def recording() -> Iterator[Timeline]:
         timeline._end()
         with _recording_lock:
             _active = None
+
+
+def open_span() -> int:
+    """The number of the innermost span open in this thread (-1: none, or no recording)."""
+    if _active is None:
+        return -1
+    open_spans: list[int] | None = getattr(_stack, "open", None)
+    return open_spans[-1] if open_spans else -1
+
+
+@contextmanager
+def inside(parent: int) -> Iterator[None]:
+    """Spans begun in this thread during the block are children of span ``parent``,
+    opened in another thread (:func:`open_span` there): a step's work handed to a thread
+    pool stays under that step. Nothing changes for ``parent`` -1 or when not recording."""
+    if parent < 0 or _active is None:
+        yield
+        return
+    before = getattr(_stack, "open", None)
+    _stack.open = [parent]
+    try:
+        yield
+    finally:
+        _stack.open = before
 
 
 @contextmanager
