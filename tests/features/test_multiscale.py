@@ -5,6 +5,7 @@ from __future__ import annotations
 import colorsys
 import doctest
 from collections.abc import Iterable
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -281,6 +282,20 @@ def test_level_reach_is_the_reach_the_features_give(cylinders: bool) -> None:
             assert reach.min() >= config.cylinder_radius_m(number)
 
 
+def _every_level_by_tile(
+    scene: PointCloud, config: FeatureConfig, tile_size_m: float, workdir: Path
+) -> TiledScan:
+    """The scene tiled, read in chunks of 7,000 points, every level described tile by tile
+    (none whole)."""
+    return TiledScan(
+        _chunks(scene, 7000),
+        config=config,
+        tile_size_m=tile_size_m,
+        workdir=workdir,
+        whole_level_points=0,
+    )
+
+
 def test_a_tiles_levels_computed_in_parts_give_the_same_rows_and_neighbours(
     scene: PointCloud, tmp_path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -305,16 +320,7 @@ def test_a_tiles_levels_computed_in_parts_give_the_same_rows_and_neighbours(
         monkeypatch.setattr(tiling, "_MIN_PART_QUERIES", min_part)
         got = np.full_like(expected, np.nan)
         neighbours = {}
-        with (
-            thread_limit(3),
-            TiledScan(
-                _chunks(scene, 7000),
-                config=config,
-                tile_size_m=12.8,
-                workdir=tmp_path,
-                whole_level_points=0,  # every level tile by tile
-            ) as scan,
-        ):
+        with thread_limit(3), _every_level_by_tile(scene, config, 12.8, tmp_path) as scan:
             for tile in scan.iter_features():  # each tile on the whole budget: in parts
                 got[tile.point_indices] = tile.table.point_values()
                 neighbours[tile.tile] = tile.table.neighbours
@@ -342,8 +348,7 @@ def test_tiles_on_one_thread_of_a_large_map_cut_their_levels_into_parts_the_same
     from semantic3d.core.threads import thread_budget, thread_limit
 
     config = FeatureConfig(**{**_fields(SMALL), "cylinder_features": CYLINDER_FEATURES})
-    table = compute_multiscale_features(scene, config=config)
-    expected = table.point_values()
+    expected = compute_multiscale_features(scene, config=config).point_values()
     cuts: list[tuple[int, int]] = []  # (the task's threads, parts asked for)
     part_blocks = tiling.part_blocks
 
@@ -354,16 +359,7 @@ def test_tiles_on_one_thread_of_a_large_map_cut_their_levels_into_parts_the_same
     monkeypatch.setattr(tiling, "part_blocks", spied)
     monkeypatch.setattr(tiling, "_MIN_PART_QUERIES", 40)
     got = np.full_like(expected, np.nan)
-    with (
-        thread_limit(4),
-        TiledScan(
-            _chunks(scene, 7000),
-            config=config,
-            tile_size_m=6.4,
-            workdir=tmp_path,
-            whole_level_points=0,
-        ) as scan,
-    ):
+    with thread_limit(4), _every_level_by_tile(scene, config, 6.4, tmp_path) as scan:
         assert len(scan.tiles) > 4
         for tile in scan.map_tiles(lambda features: features, n_threads=4):
             got[tile.point_indices] = tile.table.point_values()

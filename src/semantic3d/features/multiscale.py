@@ -281,8 +281,8 @@ def fill_level_columns(
     ``compute(voxels, out)`` fills ``out`` with the features of distinct, sorted ``voxels``;
     it runs once per voxel, and its rows are copied to every row of that voxel.
     """
-    needed, inverse, in_order = _distinct(voxel_of_row)
-    if in_order:
+    needed, inverse = level_rows(voxel_of_row)
+    if inverse is None:
         # one row per voxel, in voxel order (level 0 in voxel mode): fill in place
         compute(needed, columns)
         return
