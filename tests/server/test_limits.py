@@ -15,7 +15,6 @@ import sqlite3
 import struct
 import threading
 import time
-import tracemalloc
 import zipfile
 import zlib
 from collections.abc import AsyncIterator, Iterator
@@ -31,6 +30,7 @@ from semantic3d.server.services.accounts import hashing_slot, register_user
 from semantic3d.server.services.upload_files import locked_part, write_chunk
 from semantic3d.server.services.uploads import get_upload
 from semantic3d.server.throttle import RateLimiter
+from tests.budgets import Budget
 
 from .conftest import (
     PASSWORD,
@@ -66,35 +66,6 @@ def many_entries_zip(n_entries: int) -> bytes:
     ) + struct.pack("<4sLQL", b"PK\x06\x07", 0, at, 1)
     end = struct.pack("<4s4H2LH", b"PK\x05\x06", 0, 0, 0xFFFF, 0xFFFF, 0xFFFFFFFF, 0xFFFFFFFF, 0)
     return b"".join(local) + directory + zip64 + end
-
-
-class Budget:
-    """CPU seconds, wall seconds and (``traced``) peak traced MB of a ``with`` block.
-
-    Tracing allocations slows Python's allocations several times: the references a
-    refusal is compared with (building an index, reading a member) are timed untraced.
-    """
-
-    def __init__(self, *, traced: bool = True) -> None:
-        self.traced = traced
-        self.peak_mb = float("nan")
-
-    def __enter__(self) -> Budget:
-        if self.traced:
-            tracemalloc.start()
-        self._cpu = time.process_time()
-        self._wall = time.perf_counter()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.cpu_s = time.process_time() - self._cpu
-        self.wall_s = time.perf_counter() - self._wall
-        if self.traced:
-            self.peak_mb = tracemalloc.get_traced_memory()[1] / 1e6
-            tracemalloc.stop()
-
-    def __str__(self) -> str:
-        return f"{self.cpu_s:.3f} s CPU, {self.wall_s:.3f} s, {self.peak_mb:.1f} MB traced"
 
 
 @pytest.fixture
