@@ -95,6 +95,80 @@ def test_the_counter_counts_the_windows_before_the_first_bad_line(
     np.testing.assert_array_equal(table, reference)
 
 
+@settings(max_examples=30, deadline=None)
+@given(
+    n_blocks=st.integers(0, 5),
+    extra=st.integers(0, 2 * WINDOW),
+    first=st.integers(0, 3 * WINDOW),
+    spoil=st.one_of(
+        st.none(),
+        st.tuples(
+            st.sampled_from(["truth", "pred"]),
+            st.floats(0, 1, exclude_max=True),  # where, as a share of the counted lines
+            st.sampled_from([b"x", b"\r", b"9", b"0"]),
+            st.booleans(),  # the digit (True) or the line end
+        ),
+    ),
+    n_threads=st.integers(1, 5),
+    seed=st.integers(0, 2**16),
+)
+def test_the_file_counter_counts_every_line_or_nothing(
+    n_blocks: int,
+    extra: int,
+    first: int,
+    spoil: tuple[str, float, bytes, bool] | None,
+    n_threads: int,
+    seed: int,
+    tmp_path_factory: pytest.TempPathFactory,
+) -> None:
+    # whole blocks of windows for the threads' runs, a tail of windows and single lines,
+    # counted from line ``first`` on
+    rng = np.random.default_rng(seed)
+    n = n_blocks * kernel.BLOCK_WINDOWS * WINDOW + extra
+    truth = np.repeat(rng.integers(0, 9, n // 50 + first + 1), 50)[: first + n]
+    pred = np.where(
+        rng.random(first + n) < 0.7, np.maximum(truth, 1), rng.integers(1, 9, first + n)
+    )
+    texts = {"truth": _text(truth), "pred": _text(pred)}
+    good = True
+    if spoil is not None and n:
+        which, share, byte, digit = spoil
+        at = 2 * (first + int(share * n)) + (0 if digit else 1)
+        texts[which][at : at + 1] = byte
+        # truth accepts 0..8 and pred 1..8 here: "9" is out of range for both, "0" for pred
+        good = digit and byte == b"0" and which == "truth"
+    folder = tmp_path_factory.mktemp("files")
+    for which, text in texts.items():
+        (folder / which).write_bytes(text)
+    table = np.ones((9, 9), np.int64)
+    with (folder / "truth").open("rb") as t, (folder / "pred").open("rb") as p:
+        counted = kernel.count_file_pairs(
+            t.fileno(), p.fileno(), first, n, 0, 8, 1, 8, table, n_threads
+        )
+    assert counted == good
+    reference = np.ones((9, 9), np.int64)
+    if good:
+        digits = {w: np.frombuffer(bytes(text), np.uint8)[0::2] - 48 for w, text in texts.items()}
+        np.add.at(reference, (digits["truth"][first:], digits["pred"][first:]), 1)
+    np.testing.assert_array_equal(table, reference)  # untouched when not every line counts
+
+
+def test_the_file_counter_counts_nothing_past_the_end_of_a_file(tmp_path: Path) -> None:
+    text = _text(np.full(3 * WINDOW + 5, 4))
+    (tmp_path / "whole").write_bytes(text)
+    (tmp_path / "short").write_bytes(text[:-2])
+    table = np.zeros((9, 9), np.int64)
+    with (tmp_path / "whole").open("rb") as whole, (tmp_path / "short").open("rb") as short:
+        for truth, pred, n in ((whole, short, 3 * WINDOW + 5), (whole, whole, 4 * WINDOW)):
+            assert not kernel.count_file_pairs(
+                truth.fileno(), pred.fileno(), 0, n, 0, 8, 0, 8, table, 2
+            )
+        assert kernel.count_file_pairs(
+            whole.fileno(), short.fileno(), 0, 3 * WINDOW + 4, 0, 8, 0, 8, table, 2
+        )
+    assert table[4, 4] == table.sum() == 3 * WINDOW + 4
+
+
 def test_the_counter_adds_to_its_table_and_ignores_a_short_tail() -> None:
     values = np.full(WINDOW - 1, 3)
     table = np.ones((9, 9), np.int64)
@@ -189,13 +263,38 @@ def test_long_files_give_what_the_general_parsers_alone_give(
         calls.append(got)
         return got
 
+    files: list[bool] = []
+    file_counter = kernel.count_file_pairs
+
+    def counting_files(*args: object) -> bool:
+        whole = file_counter(*args)
+        files.append(whole)
+        return whole
+
     monkeypatch.setattr(kernel, "count_digit_pairs", counting)
+    monkeypatch.setattr(kernel, "count_file_pairs", counting_files)
     general = _outcome(sub_dir, truth_dir, chunk_size=evaluation._RETRY_PAIRS)  # no counter
-    assert calls == []
+    monkeypatch.setattr(evaluation, "_count_digit_files", lambda *args: None)
+    assert _outcome(sub_dir, truth_dir) == general  # the streams' counter alone
+    monkeypatch.undo()
+    monkeypatch.setattr(kernel, "count_digit_pairs", counting)
+    monkeypatch.setattr(kernel, "count_file_pairs", counting_files)
+    calls.clear()
+    files.clear()
     for submission in (sub_dir, archive):
         assert _outcome(submission, truth_dir) == general
-    # the counter did the bulk of the work, but where a whole file has another shape
-    assert sum(calls) >= (N_LINES if case == "crlf file" else 2 * N_LINES) - 4 * 2 * WINDOW
+    # scan b's files (and a's when clean) were counted whole by the file counter; it gave up
+    # on scan a's files of one length with a bad line (the streams took them), and was not
+    # tried on files of different lengths (scans run side by side: sorted)
+    tried_a = {"clean": [True], "out of range": [False], "bad truth": [False]}.get(case, [])
+    expected = [sorted([*tried_a, True])]
+    if case == "bad truth":  # its error may end the evaluation before scan b
+        expected.append([False])
+    assert sorted(files) in expected
+    # the streams' counter did the bulk of the work the file counter left, but where a
+    # whole file has another shape
+    left = N_LINES if case == "clean" else 2 * N_LINES  # the archive's; scan a's file
+    assert sum(calls) >= left - (N_LINES if case == "crlf file" else 0) - 4 * 2 * WINDOW
     if case == "crlf file":  # a few windows tried, then the general parsers alone
         assert len([c for c in calls if c == 0]) <= 2 * 12
     if case in ("clean", "crlf line", "padded values", "crlf file", "no final line end"):
@@ -217,7 +316,10 @@ def test_the_counter_gives_the_same_numbers_on_any_number_of_threads(tmp_path: P
     for n_threads in (1, 2, 3):
         with thread_limit(n_threads):
             outcomes.append(_outcome(sub_dir, truth_dir))
-    assert outcomes[0] == outcomes[1] == outcomes[2]
+            with zipfile.ZipFile(tmp_path / f"{n_threads}.zip", "w") as archive:
+                archive.write(sub_dir / "a.labels", "a.labels")  # streamed, not a file
+            outcomes.append(_outcome(tmp_path / f"{n_threads}.zip", truth_dir))
+    assert all(outcome == outcomes[0] for outcome in outcomes)
     assert outcomes[0][0] == "scores"
 
 

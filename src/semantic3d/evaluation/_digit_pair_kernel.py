@@ -9,6 +9,13 @@ arrays' ranges and counting them (what :class:`~semantic3d.io.labelstream.LabelS
 four times more. No library parses and counts in one pass; the general parsers stay the
 reference and handle every other shape (CRLF, several digits, bad lines).
 
+Two drivers. :func:`count_digit_pairs` counts text another reader has buffered (any
+stream: a file, a zip member). :func:`count_file_pairs` reads two regular files itself,
+with ``pread`` on each run's own buffers, so a scan's whole text is counted without the
+interpreter between its blocks: with many scans at once, the interpreter's lock taken
+several times a block (a read of each file, the count, the streams' bookkeeping) left
+threads waiting for it.
+
 The lines are taken in windows of :data:`WINDOW` pairs, the windows split into one run per
 thread. A run stops at its first window holding anything else; what is counted is the
 prefix of whole windows before the first such window, so the caller can hand that window
@@ -18,8 +25,13 @@ the threads.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import cast
+
 import numba as nb
 import numpy as np
+from numba import types
+from numba.core.typing import signature
 from numpy.typing import NDArray
 
 WINDOW = 4096
@@ -34,6 +46,10 @@ window counted this way in the pass that checks it goes at about twice the rate 
 check pass and a count pass (and no slower for labels with no runs)."""
 _PAIR_ZERO = 0x0A30
 """``"0\\n"`` read as one little-endian 16-bit word."""
+BLOCK_WINDOWS = 64
+"""Windows :func:`count_file_pairs` reads of each file at a time (512 KiB of text): the two
+blocks stay in cache for the count, as :class:`~semantic3d.io.labelstream.LabelStream`'s
+blocks do for :func:`count_digit_pairs`."""
 if WINDOW % _RUN or _RUN % _LANES:
     raise ValueError("a window is whole blocks of _RUN pairs, a block whole rows of _LANES")
 
@@ -154,6 +170,117 @@ def count_digit_pairs(
     return counted * WINDOW
 
 
+_pread = cast(
+    "Callable[[int, int, int, int], int]",  # what the compiled code calls it as
+    types.ExternalFunction(
+        "pread", signature(types.intp, types.intc, types.uintp, types.uintp, types.int64)
+    ),
+)
+"""POSIX ``pread(fd, buffer, count, offset)``, the buffer passed as its address (an integer,
+in the register a pointer takes); linked when first compiled, so never where it is missing
+(the evaluation checks ``os.pread`` first)."""
+
+
+@nb.njit(cache=True, nogil=True)
+def _read_fully(fd: int, buffer: NDArray[np.uint8], n_bytes: int, offset: int) -> bool:
+    """Fill ``buffer[:n_bytes]`` from ``fd`` at ``offset``; False on an error or the end."""
+    done = 0
+    while done < n_bytes:
+        got = _pread(fd, buffer.ctypes.data + done, n_bytes - done, offset + done)
+        if got <= 0:
+            return False
+        done += got
+    return True
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def count_file_pairs(
+    truth_fd: int,
+    pred_fd: int,
+    first_pair: int,
+    n_pairs: int,
+    truth_low: int,
+    truth_high: int,
+    pred_low: int,
+    pred_high: int,
+    table: NDArray[np.int64],
+    n_threads: int,
+) -> bool:  # pragma: no cover - compiled
+    """Count lines ``first_pair`` to ``first_pair + n_pairs`` of two files of ``d\n`` lines.
+
+    Each run of ``n_threads`` (numba's count) reads its own windows of both files
+    (:data:`BLOCK_WINDOWS` at a time, at offset twice the line number) and counts them as
+    :func:`count_digit_pairs` does; the lines after the last whole window are checked and
+    counted one by one. Returns True with ``table`` increased by the pairs when every line
+    of both files is a ``d\n`` line of a value in range (``truth_low..truth_high``,
+    ``pred_low..pred_high``, within 0..9 and the table), else False with ``table``
+    untouched (a read that fails or ends early too): the caller then reads the files with
+    the general parsers, which report the problems.
+    """
+    rows, cols = table.shape
+    if not (
+        0 <= truth_low <= truth_high < min(rows, 10) and 0 <= pred_low <= pred_high < min(cols, 10)
+    ):
+        raise ValueError("count_file_pairs: a value range outside 0..9 or the table")
+    n_windows = n_pairs // WINDOW
+    runs = max(1, min(n_threads, n_windows // BLOCK_WINDOWS))
+    per_run = (n_windows + runs - 1) // runs
+    counts = np.zeros((runs, _LANES * 256), dtype=np.int64)
+    good = np.ones(runs, dtype=np.bool_)
+    t_low, t_span = np.uint16(truth_low), np.uint16(truth_high - truth_low)
+    p_low, p_span = np.uint16(pred_low), np.uint16(pred_high - pred_low)
+    for run in nb.prange(runs):
+        truth_text = np.empty(2 * WINDOW * BLOCK_WINDOWS, dtype=np.uint8)
+        pred_text = np.empty(2 * WINDOW * BLOCK_WINDOWS, dtype=np.uint8)
+        truth_words = truth_text.view(np.uint16)
+        pred_words = pred_text.view(np.uint16)
+        lanes = np.zeros(_LANES * 256, dtype=np.int64)
+        window = run * per_run
+        end = min(n_windows, (run + 1) * per_run)
+        while window < end and good[run]:
+            k = min(BLOCK_WINDOWS, end - window)
+            offset = 2 * (first_pair + window * WINDOW)
+            n_bytes = 2 * WINDOW * k
+            if not (
+                _read_fully(truth_fd, truth_text, n_bytes, offset)
+                and _read_fully(pred_fd, pred_text, n_bytes, offset)
+            ):
+                good[run] = False
+            for j in range(k):
+                if good[run] and not _count_window(
+                    truth_words, pred_words, j * WINDOW, lanes, t_low, t_span, p_low, p_span, 1
+                ):
+                    good[run] = False
+            window += k
+        counts[run] = lanes
+    if not good.all():
+        return False
+    tail = n_pairs - n_windows * WINDOW
+    truth_text = np.empty(2 * WINDOW, dtype=np.uint8)
+    pred_text = np.empty(2 * WINDOW, dtype=np.uint8)
+    offset = 2 * (first_pair + n_windows * WINDOW)
+    if tail and not (
+        _read_fully(truth_fd, truth_text, 2 * tail, offset)
+        and _read_fully(pred_fd, pred_text, 2 * tail, offset)
+    ):
+        return False
+    truth_words = truth_text.view(np.uint16)
+    pred_words = pred_text.view(np.uint16)
+    for k in range(tail):
+        truth_value = np.uint16(truth_words[k] - np.uint16(_PAIR_ZERO))
+        pred_value = np.uint16(pred_words[k] - np.uint16(_PAIR_ZERO))
+        if np.uint16(truth_value - t_low) > t_span or np.uint16(pred_value - p_low) > p_span:
+            return False
+    for k in range(tail):
+        table[truth_words[k] & 15, pred_words[k] & 15] += 1
+    for run in range(runs):
+        for lane in range(_LANES):
+            for t in range(truth_low, truth_high + 1):
+                for p in range(pred_low, pred_high + 1):
+                    table[t, p] += counts[run, lane * 256 + t * 16 + p]
+    return True
+
+
 def count_pairs(
     truth: NDArray[np.uint8],
     truth_at: int,
@@ -171,6 +298,30 @@ def count_pairs(
             truth_at,
             pred,
             pred_at,
+            n_pairs,
+            *truth_range,
+            *pred_range,
+            table,
+            nb.get_num_threads(),
+        )
+    )
+
+
+def count_files(
+    truth_fd: int,
+    pred_fd: int,
+    first_pair: int,
+    n_pairs: int,
+    truth_range: tuple[int, int],
+    pred_range: tuple[int, int],
+    table: NDArray[np.int64],
+) -> bool:
+    """:func:`count_file_pairs` on this thread's numba threads."""
+    return bool(
+        count_file_pairs(
+            truth_fd,
+            pred_fd,
+            first_pair,
             n_pairs,
             *truth_range,
             *pred_range,

@@ -13,7 +13,10 @@ listing them all.
 
 from __future__ import annotations
 
+import io
 import logging
+import os
+import stat
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import contextmanager
@@ -174,6 +177,65 @@ _RETRY_PAIRS = 1 << 12
 doubled while the counter counts nothing, up to the chunk size: then they take the rest."""
 
 
+def _digit_ranges(
+    truth_range: tuple[int, int], pred_range: tuple[int, int], n_classes: int
+) -> tuple[tuple[int, int], tuple[int, int]] | None:
+    """The single-digit values of the truth's and the prediction's ranges; None if either
+    has none."""
+    (t_low, t_high), (p_low, p_high) = truth_range, pred_range
+    t_high, p_high = min(t_high, 9, n_classes), min(p_high, 9, n_classes)
+    if not (0 <= t_low <= t_high and 0 <= p_low <= p_high):
+        return None
+    return (t_low, t_high), (p_low, p_high)
+
+
+_FILE_PIECE_PAIRS = 1 << 25
+"""Line pairs of two files counted by one call of the compiled file counter (64 MiB of
+each): the progress is reported, and Ctrl-C seen, between them."""
+
+
+def _count_digit_files(
+    truth: io.RawIOBase,
+    pred: io.RawIOBase,
+    matrix: ConfusionMatrix,
+    truth_range: tuple[int, int],
+    pred_range: tuple[int, int],
+    progress: _Progress,
+) -> int | None:
+    """Count two regular files of ``d\n`` lines of the same length into ``matrix``; their
+    lines. None (``matrix`` untouched) for anything else: a stream that is not a plain
+    file, files of different sizes, a small text, any line of another shape or a value out
+    of range. Read with positioned reads, from the start whatever the handles' positions.
+    """
+    if not (hasattr(os, "pread") and isinstance(truth, io.FileIO) and isinstance(pred, io.FileIO)):
+        return None
+    ranges = _digit_ranges(truth_range, pred_range, matrix.n_classes)
+    try:
+        truth_status, pred_status = os.fstat(truth.fileno()), os.fstat(pred.fileno())
+    except OSError:
+        return None
+    size = truth_status.st_size
+    if (
+        ranges is None
+        or not (stat.S_ISREG(truth_status.st_mode) and stat.S_ISREG(pred_status.st_mode))
+        or pred_status.st_size != size
+        or size % 2
+        or size <= _BLOCK_BYTES  # a small text: the general parsers, numba not loaded
+    ):
+        return None
+    from semantic3d.evaluation import _digit_pair_kernel as kernel
+
+    n_pairs = size // 2
+    table = np.zeros((matrix.n_classes + 1,) * 2, dtype=np.int64)
+    for first in range(0, n_pairs, _FILE_PIECE_PAIRS):
+        count = min(_FILE_PIECE_PAIRS, n_pairs - first)
+        if not kernel.count_files(truth.fileno(), pred.fileno(), first, count, *ranges, table):
+            return None
+        progress.report(2 * (first + count))
+    matrix.add_counts(table)
+    return n_pairs
+
+
 class _DigitPairCounter:
     """The compiled counter of ``d\\n`` pairs, driven over two streams' buffers."""
 
@@ -191,12 +253,8 @@ class _DigitPairCounter:
         cls, truth: LabelStream, pred: LabelStream, n_classes: int
     ) -> _DigitPairCounter | None:
         """A counter for the single-digit values both streams accept; None if there are none."""
-        t_low, t_high = truth.value_range
-        p_low, p_high = pred.value_range
-        t_high, p_high = min(t_high, 9, n_classes), min(p_high, 9, n_classes)
-        if not (0 <= t_low <= t_high and 0 <= p_low <= p_high):
-            return None
-        return cls((t_low, t_high), (p_low, p_high), n_classes + 1)
+        ranges = _digit_ranges(truth.value_range, pred.value_range, n_classes)
+        return None if ranges is None else cls(*ranges, n_classes + 1)
 
     def count(self, truth: LabelStream, pred: LabelStream, progress: _Progress) -> tuple[int, bool]:
         """Count pairs until a file ends or a window holds another line; (pairs, the latter)."""
@@ -266,46 +324,62 @@ def _evaluate_scan(
     problems: list[str],
     progress: _Progress,
 ) -> ConfusionMatrix | None:
-    """Stream one (ground truth, prediction) pair; None when the prediction has problems."""
+    """Count one (ground truth, prediction) pair; None when the prediction has problems.
+
+    Two regular files of ``d\n`` lines are counted by the compiled file counter; anything
+    else (or any problem in them) is streamed through the general parsers.
+    """
     matrix = ConfusionMatrix(protocol.n_classes)
+    truth_range = (0, protocol.n_classes)
+    pred_range = (protocol.prediction_min, protocol.prediction_max)
     with gt_path.open("rb", buffering=0) as gt_handle:
-        truth = LabelStream(
-            gt_handle,
-            source=str(gt_path),
-            low=0,
-            high=protocol.n_classes,
-            block_size=_BLOCK_BYTES,
-        )
         try:
             pred_handle = entry.open()
         except READ_FAILURES as exc:
             problems.append(read_failure(entry.name, exc))
             return None
         with pred_handle:
-            pred = LabelStream(
-                pred_handle,
-                source=entry.name,
-                low=protocol.prediction_min,
-                high=protocol.prediction_max,
-                block_size=_BLOCK_BYTES,
+            n_lines = _count_digit_files(
+                gt_handle, pred_handle, matrix, truth_range, pred_range, progress
             )
-            try:
-                _stream_pair(truth, pred, matrix, chunk_size=chunk_size, progress=progress)
-            except _PredictionUnreadableError as exc:
-                cause = exc.__cause__ if exc.__cause__ is not None else exc
-                problems.append(read_failure(entry.name, cause))
-                return None
-    truth_problems = truth.problems()
-    if truth_problems:
-        raise DataFormatError("invalid ground truth: " + "; ".join(truth_problems))
-    if scan.n_points is not None and scan.n_points != truth.n_lines:
+            if n_lines is not None:
+                truth_lines, pred_lines, scan_problems = n_lines, n_lines, []
+            else:
+                truth = LabelStream(
+                    gt_handle,
+                    source=str(gt_path),
+                    low=truth_range[0],
+                    high=truth_range[1],
+                    block_size=_BLOCK_BYTES,
+                )
+                pred = LabelStream(
+                    pred_handle,
+                    source=entry.name,
+                    low=pred_range[0],
+                    high=pred_range[1],
+                    block_size=_BLOCK_BYTES,
+                )
+                try:
+                    _stream_pair(truth, pred, matrix, chunk_size=chunk_size, progress=progress)
+                except _PredictionUnreadableError as exc:
+                    cause = exc.__cause__ if exc.__cause__ is not None else exc
+                    problems.append(read_failure(entry.name, cause))
+                    return None
+                truth_problems = truth.problems()
+                if truth_problems:
+                    raise DataFormatError("invalid ground truth: " + "; ".join(truth_problems))
+                truth_lines, pred_lines, scan_problems = (
+                    truth.n_lines,
+                    pred.n_lines,
+                    pred.problems(),
+                )
+    if scan.n_points is not None and scan.n_points != truth_lines:
         raise DataFormatError(
             f"expected {scan.n_points} lines for scan {scan.name} (protocol "
-            f"v{protocol.version}), found {truth.n_lines}",
+            f"v{protocol.version}), found {truth_lines}",
             path=str(gt_path),
         )
-    scan_problems = pred.problems()
-    mismatch = line_count_problem(entry.name, expected=truth.n_lines, found=pred.n_lines)
+    mismatch = line_count_problem(entry.name, expected=truth_lines, found=pred_lines)
     if mismatch:
         scan_problems.append(mismatch)
     problems.extend(scan_problems)
