@@ -206,13 +206,13 @@ def count_file_pairs(
     table: NDArray[np.int64],
     n_threads: int,
 ) -> bool:  # pragma: no cover - compiled
-    """Count lines ``first_pair`` to ``first_pair + n_pairs`` of two files of ``d\n`` lines.
+    """Count lines ``first_pair`` to ``first_pair + n_pairs`` of two files of ``d\\n`` lines.
 
     Each run of ``n_threads`` (numba's count) reads its own windows of both files
     (:data:`BLOCK_WINDOWS` at a time, at offset twice the line number) and counts them as
     :func:`count_digit_pairs` does; the lines after the last whole window are checked and
     counted one by one. Returns True with ``table`` increased by the pairs when every line
-    of both files is a ``d\n`` line of a value in range (``truth_low..truth_high``,
+    of both files is a ``d\\n`` line of a value in range (``truth_low..truth_high``,
     ``pred_low..pred_high``, within 0..9 and the table), else False with ``table``
     untouched (a read that fails or ends early too): the caller then reads the files with
     the general parsers, which report the problems.

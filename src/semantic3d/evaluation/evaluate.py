@@ -202,7 +202,7 @@ def _count_digit_files(
     pred_range: tuple[int, int],
     progress: _Progress,
 ) -> int | None:
-    """Count two regular files of ``d\n`` lines of the same length into ``matrix``; their
+    """Count two regular files of ``d\\n`` lines of the same length into ``matrix``; their
     lines. None (``matrix`` untouched) for anything else: a stream that is not a plain
     file, files of different sizes, a small text, any line of another shape or a value out
     of range. Read with positioned reads, from the start whatever the handles' positions.
@@ -326,7 +326,7 @@ def _evaluate_scan(
 ) -> ConfusionMatrix | None:
     """Count one (ground truth, prediction) pair; None when the prediction has problems.
 
-    Two regular files of ``d\n`` lines are counted by the compiled file counter; anything
+    Two regular files of ``d\\n`` lines are counted by the compiled file counter; anything
     else (or any problem in them) is streamed through the general parsers.
     """
     matrix = ConfusionMatrix(protocol.n_classes)
