@@ -46,6 +46,9 @@ window counted this way in the pass that checks it goes at about twice the rate 
 check pass and a count pass (and no slower for labels with no runs)."""
 _PAIR_ZERO = 0x0A30
 """``"0\\n"`` read as one little-endian 16-bit word."""
+FILE_PIECE_PAIRS = 1 << 25
+"""Line pairs :func:`count_files` counts in one call of :func:`count_file_pairs` (64 MiB of
+each file)."""
 BLOCK_WINDOWS = 64
 """Windows :func:`count_file_pairs` reads of each file at a time (512 KiB of text): the two
 blocks stay in cache for the count, as :class:`~semantic3d.io.labelstream.LabelStream`'s
@@ -310,22 +313,25 @@ def count_pairs(
 def count_files(
     truth_fd: int,
     pred_fd: int,
-    first_pair: int,
     n_pairs: int,
     truth_range: tuple[int, int],
     pred_range: tuple[int, int],
     table: NDArray[np.int64],
+    done: Callable[[int], None],
 ) -> bool:
-    """:func:`count_file_pairs` on this thread's numba threads."""
-    return bool(
-        count_file_pairs(
-            truth_fd,
-            pred_fd,
-            first_pair,
-            n_pairs,
-            *truth_range,
-            *pred_range,
-            table,
-            nb.get_num_threads(),
-        )
-    )
+    """:func:`count_file_pairs` over all ``n_pairs`` lines, on this thread's numba threads.
+
+    In calls of :data:`FILE_PIECE_PAIRS` lines, ``done(lines counted)`` after each (the
+    progress is reported, and Ctrl-C seen, between them); ``table`` gains the pairs only
+    when every line counts (True).
+    """
+    counts = np.zeros_like(table)
+    n_threads = nb.get_num_threads()
+    for first in range(0, n_pairs, FILE_PIECE_PAIRS):
+        n = min(FILE_PIECE_PAIRS, n_pairs - first)
+        ranges = (*truth_range, *pred_range)
+        if not count_file_pairs(truth_fd, pred_fd, first, n, *ranges, counts, n_threads):
+            return False
+        done(first + n)
+    table += counts
+    return True

@@ -189,11 +189,6 @@ def _digit_ranges(
     return (t_low, t_high), (p_low, p_high)
 
 
-_FILE_PIECE_PAIRS = 1 << 25
-"""Line pairs of two files counted by one call of the compiled file counter (64 MiB of
-each): the progress is reported, and Ctrl-C seen, between them."""
-
-
 def _count_digit_files(
     truth: io.RawIOBase,
     pred: io.RawIOBase,
@@ -227,11 +222,15 @@ def _count_digit_files(
 
     n_pairs = size // 2
     table = np.zeros((matrix.n_classes + 1,) * 2, dtype=np.int64)
-    for first in range(0, n_pairs, _FILE_PIECE_PAIRS):
-        count = min(_FILE_PIECE_PAIRS, n_pairs - first)
-        if not kernel.count_files(truth.fileno(), pred.fileno(), first, count, *ranges, table):
-            return None
-        progress.report(2 * (first + count))
+    if not kernel.count_files(
+        truth.fileno(),
+        pred.fileno(),
+        n_pairs,
+        *ranges,
+        table,
+        lambda lines: progress.report(2 * lines),
+    ):
+        return None
     matrix.add_counts(table)
     return n_pairs
 
