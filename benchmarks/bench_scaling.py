@@ -26,7 +26,9 @@ files, in the same run:
   pairs per second.
 
 Each row gives the rate (items per second, wall clock), CPU seconds (and their ratio to
-the peer's, which a loaded machine disturbs less than wall time), the mean number of the
+the peer's, which a loaded machine disturbs less than wall time), the system CPU seconds
+and minor page faults of the timed run (each 4 KiB of fresh memory is one where numpy gets
+no transparent huge pages: the first line says the kernel's mode), the mean number of the
 process's threads running or ready to run while it worked (sampled every 2 ms: a
 load-independent view of how parallel it was), the peer's rate at the same count, the
 floor where a path must read files (``read_labels``, ``evaluate``: the same files read on
@@ -143,17 +145,42 @@ def _stack(frame: Any, depth: int = 4) -> str:
     return " < ".join(names) or "(outside the package)"
 
 
+def _usage() -> tuple[float, int]:
+    """This process's system CPU seconds and minor page faults so far (0, 0 without
+    ``resource``)."""
+    try:
+        import resource
+    except ImportError:  # not on Unix
+        return 0.0, 0
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    return usage.ru_stime, usage.ru_minflt
+
+
+def transparent_huge_pages() -> str:
+    """The kernel's transparent huge page mode (``[madvise]``: numpy's large arrays get
+    them), or "unknown": without them every 4 KiB of a fresh array is a page fault."""
+    try:
+        text = Path("/sys/kernel/mm/transparent_hugepage/enabled").read_text()
+    except OSError:
+        return "unknown"
+    return next((word.strip("[]") for word in text.split() if word.startswith("[")), "unknown")
+
+
 def _measure(run: Callable[[], int], few: int | None = None) -> dict[str, Any]:
     load = os.getloadavg()[0]
+    system, faults = _usage()
     cpu, wall = time.process_time(), time.perf_counter()
     with _Sampler(few) as sampler:
         items = run()
     wall = time.perf_counter() - wall
     total = max(1, sum(sampler.counts.values()))
+    system_after, faults_after = _usage()
     return {
         "items": items,
         "wall_s": wall,
         "cpu_s": time.process_time() - cpu,
+        "system_s": system_after - system,  # in the kernel: reads, writes, page faults
+        "page_faults": faults_after - faults,
         "running": {str(k): v for k, v in sorted(sampler.counts.items())},
         "load": load,
         # share of all samples at which each piece of code ran while few threads did
@@ -592,7 +619,8 @@ def main() -> None:
     counts = sorted({n for n in args.threads if n <= cores or args.oversubscribe})
     print(
         f"{cores} cores, threads {counts}, {args.points:,} points; "
-        f"load average {os.getloadavg()[0]:.2f} before preparing"
+        f"load average {os.getloadavg()[0]:.2f} before preparing; transparent huge pages "
+        f"{transparent_huge_pages()}"
     )
     rows: list[dict[str, Any]] = []
     summary: dict[str, dict[str, Any]] = {}
@@ -602,6 +630,7 @@ def main() -> None:
         shared = _prepare(args, work)
         header = (
             f"{'path':<12} {'thr':>3} {'M items/s':>10} {'wall s':>8} {'CPU s':>8} "
+            f"{'sys s':>6} {'faults':>7} "
             f"{'running':>7} {'peer M/s':>9} {'x peer':>7} {'CPU/peer':>8} {'floor M/s':>9} "
             f"{'x floor':>7} {'load':>5} output sha256"
         )
@@ -634,7 +663,16 @@ def main() -> None:
                     "peer_rate": peer_rate,
                     **{
                         key: ours[key]
-                        for key in ("items", "wall_s", "cpu_s", "running", "load", "few_running")
+                        for key in (
+                            "items",
+                            "wall_s",
+                            "cpu_s",
+                            "system_s",
+                            "page_faults",
+                            "running",
+                            "load",
+                            "few_running",
+                        )
                     },
                 }
                 floor = result.get("floor")
@@ -650,7 +688,8 @@ def main() -> None:
                 rows.append(row)
                 print(
                     f"{path:<12} {n:>3} {rate / 1e6:>10.3f} {ours['wall_s']:>8.2f} "
-                    f"{ours['cpu_s']:>8.2f} {mean:>7.2f} "
+                    f"{ours['cpu_s']:>8.2f} {ours['system_s']:>6.2f} {ours['page_faults']:>7} "
+                    f"{mean:>7.2f} "
                     f"{'' if peer_rate is None else f'{peer_rate / 1e6:9.3f}':>9} "
                     f"{'' if peer_rate is None else f'{rate / peer_rate:7.2f}':>7} "
                     f"{'' if cpu_ratio is None else f'{cpu_ratio:8.2f}':>8} "
