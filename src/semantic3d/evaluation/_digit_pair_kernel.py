@@ -108,6 +108,34 @@ def _count_window(
     return bool(worst_truth <= truth_span) and bool(worst_pred <= pred_span)
 
 
+@nb.njit(cache=True, nogil=True)
+def _check_ranges(
+    table: NDArray[np.int64], truth_low: int, truth_high: int, pred_low: int, pred_high: int
+) -> None:  # pragma: no cover - compiled
+    """Raise unless both value ranges lie within 0..9 and within ``table``."""
+    rows, cols = table.shape
+    if not (
+        0 <= truth_low <= truth_high < min(rows, 10) and 0 <= pred_low <= pred_high < min(cols, 10)
+    ):
+        raise ValueError("pair counter: a value range outside 0..9 or the table")
+
+
+@nb.njit(cache=True, nogil=True)
+def _add_lanes(
+    table: NDArray[np.int64],
+    lanes: NDArray[np.int64],
+    truth_low: int,
+    truth_high: int,
+    pred_low: int,
+    pred_high: int,
+) -> None:  # pragma: no cover - compiled
+    """Add one run's lane counters (``lanes[lane * 256 + t * 16 + p]``) to ``table[t, p]``."""
+    for lane in range(_LANES):
+        for t in range(truth_low, truth_high + 1):
+            for p in range(pred_low, pred_high + 1):
+                table[t, p] += lanes[lane * 256 + t * 16 + p]
+
+
 @nb.njit(cache=True, nogil=True, parallel=True)
 def count_digit_pairs(
     truth: NDArray[np.uint8],
@@ -131,11 +159,7 @@ def count_digit_pairs(
     pairs were counted: fewer than the whole windows of ``n_pairs`` when a window holds a
     line of another shape or a value out of range, the first such window not counted.
     """
-    rows, cols = table.shape
-    if not (
-        0 <= truth_low <= truth_high < min(rows, 10) and 0 <= pred_low <= pred_high < min(cols, 10)
-    ):
-        raise ValueError("count_digit_pairs: a value range outside 0..9 or the table")
+    _check_ranges(table, truth_low, truth_high, pred_low, pred_high)
     n_windows = n_pairs // WINDOW
     if n_windows == 0:
         return 0
@@ -163,10 +187,7 @@ def count_digit_pairs(
         counts[run] = lanes
     counted = 0
     for run in range(runs):
-        for lane in range(_LANES):
-            for t in range(truth_low, truth_high + 1):
-                for p in range(pred_low, pred_high + 1):
-                    table[t, p] += counts[run, lane * 256 + t * 16 + p]
+        _add_lanes(table, counts[run], truth_low, truth_high, pred_low, pred_high)
         counted += good[run]
         if good[run] < min(n_windows, (run + 1) * per_run) - run * per_run:
             break  # this run stopped early: later runs are not a prefix
@@ -220,11 +241,7 @@ def count_file_pairs(
     untouched (a read that fails or ends early too): the caller then reads the files with
     the general parsers, which report the problems.
     """
-    rows, cols = table.shape
-    if not (
-        0 <= truth_low <= truth_high < min(rows, 10) and 0 <= pred_low <= pred_high < min(cols, 10)
-    ):
-        raise ValueError("count_file_pairs: a value range outside 0..9 or the table")
+    _check_ranges(table, truth_low, truth_high, pred_low, pred_high)
     n_windows = n_pairs // WINDOW
     runs = max(1, min(n_threads, n_windows // BLOCK_WINDOWS))
     per_run = (n_windows + runs - 1) // runs
@@ -249,11 +266,13 @@ def count_file_pairs(
                 and _read_fully(pred_fd, pred_text, n_bytes, offset)
             ):
                 good[run] = False
+                break
             for j in range(k):
-                if good[run] and not _count_window(
+                if not _count_window(
                     truth_words, pred_words, j * WINDOW, lanes, t_low, t_span, p_low, p_span, 1
                 ):
                     good[run] = False
+                    break
             window += k
         counts[run] = lanes
     if not good.all():
@@ -277,10 +296,7 @@ def count_file_pairs(
     for k in range(tail):
         table[truth_words[k] & 15, pred_words[k] & 15] += 1
     for run in range(runs):
-        for lane in range(_LANES):
-            for t in range(truth_low, truth_high + 1):
-                for p in range(pred_low, pred_high + 1):
-                    table[t, p] += counts[run, lane * 256 + t * 16 + p]
+        _add_lanes(table, counts[run], truth_low, truth_high, pred_low, pred_high)
     return True
 
 
@@ -327,9 +343,9 @@ def count_files(
     """
     counts = np.zeros_like(table)
     n_threads = nb.get_num_threads()
+    ranges = (*truth_range, *pred_range)
     for first in range(0, n_pairs, FILE_PIECE_PAIRS):
         n = min(FILE_PIECE_PAIRS, n_pairs - first)
-        ranges = (*truth_range, *pred_range)
         if not count_file_pairs(truth_fd, pred_fd, first, n, *ranges, counts, n_threads):
             return False
         done(first + n)
