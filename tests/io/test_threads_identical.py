@@ -7,6 +7,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import example, given, settings
+from hypothesis import strategies as st
 
 from semantic3d.core.errors import DataFormatError
 from semantic3d.core.threads import thread_limit
@@ -78,14 +80,16 @@ def test_a_bad_line_late_in_a_large_file_is_named(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize("n_threads", [1, 3])
 @pytest.mark.parametrize("where", ["first", "middle", "last", "nowhere"])
-def test_label_pieces_read_on_threads_equal_the_checking_parser(
+def test_label_blocks_read_on_threads_equal_the_checking_parser(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, n_threads: int, where: str
 ) -> None:
-    """Many pieces on several threads: the same labels, and a piece of another shape
-    anywhere hands the whole file to the checking parser (values, or the bad line)."""
+    """Many pieces of many blocks on several threads: the same labels, and a block of
+    another shape anywhere hands the whole file to the checking parser (values, or the
+    bad line)."""
     from semantic3d.io import labels as labels_module
 
     monkeypatch.setattr(labels_module, "_PIECE_LABELS", 40_009)
+    monkeypatch.setattr(labels_module, "_BLOCK_LINES", 1_001)
     values = np.random.default_rng(5).integers(0, 9, 400_000).astype(np.uint8)
     lines = [f"{v}\n".encode() for v in values.tolist()]
     at = {"first": 3, "middle": 211_111, "last": 399_998, "nowhere": None}[where]
@@ -103,18 +107,101 @@ def test_label_pieces_read_on_threads_equal_the_checking_parser(
                 read_labels(path)
 
 
-def test_label_pieces_without_positioned_reads_take_turns_and_read_the_same(
+def test_labels_without_positioned_reads_are_read_the_same(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """Where the platform lacks ``os.preadv`` (Windows) the threads seek in turn."""
+    """Where the platform lacks ``os.pread`` (Windows) the file is streamed and parsed."""
     import os
 
-    from semantic3d.io import labels as labels_module
+    from semantic3d.io import _label_parsing
 
-    monkeypatch.setattr(labels_module, "_PIECE_LABELS", 30_011)
-    values = np.random.default_rng(6).integers(0, 9, 300_000).astype(np.uint8)
+    values = np.random.default_rng(6).integers(0, 9, 700_000).astype(np.uint8)
     path = tmp_path / "turns.labels"
     path.write_bytes(b"".join(f"{v}\n".encode() for v in values.tolist()))
-    monkeypatch.delattr(os, "preadv")
+
+    def refuse(*args: object, **kwargs: object) -> bool:
+        raise AssertionError("positioned reads where the platform has none")
+
+    monkeypatch.delattr(os, "pread")
+    monkeypatch.setattr(_label_parsing, "read_single_digit_file", refuse)
     with thread_limit(3):
         assert np.array_equal(read_labels(path), values)
+
+
+def _digit_text(values: np.ndarray) -> bytearray:
+    text = bytearray(2 * values.size)
+    text[0::2] = (values.astype(np.uint8) + 48).tobytes()
+    text[1::2] = b"\n" * values.size
+    return text
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    n=st.integers(0, 5_000),
+    first=st.integers(0, 300),
+    block_lines=st.integers(1, 700),
+    n_threads=st.integers(1, 5),
+    spoil=st.one_of(
+        st.none(),
+        st.tuples(
+            st.floats(0, 1, exclude_max=True),  # where, as a share of the lines read
+            st.sampled_from([b"x", b"\r", b":", b"/", b"9", b"\n"]),
+            st.booleans(),  # the digit (True) or the line end
+        ),
+    ),
+    seed=st.integers(0, 2**16),
+)
+# the digits' neighbours in the byte table, at a block's start, in a run's middle and on
+# the last line
+@example(n=3_000, first=10, block_lines=100, n_threads=3, spoil=(0.5, b":", True), seed=1)
+@example(n=3_000, first=10, block_lines=100, n_threads=3, spoil=(0.0367, b"/", True), seed=2)
+@example(n=3_000, first=0, block_lines=128, n_threads=4, spoil=(0.9999, b"\r", False), seed=3)
+def test_the_file_reader_reads_every_line_or_says_it_could_not(
+    n: int,
+    first: int,
+    block_lines: int,
+    n_threads: int,
+    spoil: tuple[float, bytes, bool] | None,
+    seed: int,
+    tmp_path_factory: pytest.TempPathFactory,
+) -> None:
+    """The compiled reader, from line ``first``, in blocks split over runs: the values
+    exactly when every line read is ``d\n`` (a line before ``first`` is not read)."""
+    from semantic3d.io import _label_kernels as kernels
+
+    values = np.random.default_rng(seed).integers(0, 10, first + n)
+    text = _digit_text(values)
+    good = True
+    if spoil is not None and first + n:
+        share, byte, digit = spoil
+        line = int(share * (first + n))
+        at = 2 * line + (0 if digit else 1)
+        text[at : at + 1] = byte
+        good = line < first or (byte == b"9" if digit else byte == b"\n")
+    path = tmp_path_factory.mktemp("reader") / "scan.labels"
+    path.write_bytes(text)
+    out = np.full(n, 200, np.uint8)
+    with path.open("rb", buffering=0) as stream:
+        read = kernels.read_single_digit_file(stream.fileno(), first, out, block_lines, n_threads)
+    assert read == good
+    if good:
+        expected = np.frombuffer(bytes(text), np.uint8)[0::2] - 48
+        np.testing.assert_array_equal(out, expected[first:])
+
+
+def test_the_file_reader_says_it_could_not_past_the_end(tmp_path: Path) -> None:
+    path = tmp_path / "short.labels"
+    path.write_bytes(_digit_text(np.full(5_000, 3)))
+    with path.open("rb", buffering=0) as stream:
+        for first, n in ((0, 5_001), (4_999, 2), (6_000, 1)):
+            out = np.empty(n, np.uint8)
+            assert not kernels_read(stream.fileno(), first, out)
+        out = np.empty(5_000, np.uint8)
+        assert kernels_read(stream.fileno(), 0, out)
+    assert (out == 3).all()
+
+
+def kernels_read(fd: int, first: int, out: np.ndarray) -> bool:
+    from semantic3d.io import _label_kernels as kernels
+
+    return bool(kernels.read_single_digit_file(fd, first, out, 777, 3))

@@ -26,13 +26,12 @@ the threads.
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import cast
 
 import numba as nb
 import numpy as np
-from numba import types
-from numba.core.typing import signature
 from numpy.typing import NDArray
+
+from semantic3d.io._positioned_reads import read_fully
 
 WINDOW = 4096
 """Line pairs checked at once: a window either counts whole or not at all."""
@@ -194,29 +193,6 @@ def count_digit_pairs(
     return counted * WINDOW
 
 
-_pread = cast(
-    "Callable[[int, int, int, int], int]",  # what the compiled code calls it as
-    types.ExternalFunction(
-        "pread", signature(types.intp, types.intc, types.uintp, types.uintp, types.int64)
-    ),
-)
-"""POSIX ``pread(fd, buffer, count, offset)``, the buffer passed as its address (an integer,
-in the register a pointer takes); linked when first compiled, so never where it is missing
-(the evaluation checks ``os.pread`` first)."""
-
-
-@nb.njit(cache=True, nogil=True)
-def _read_fully(fd: int, buffer: NDArray[np.uint8], n_bytes: int, offset: int) -> bool:
-    """Fill ``buffer[:n_bytes]`` from ``fd`` at ``offset``; False on an error or the end."""
-    done = 0
-    while done < n_bytes:
-        got = _pread(fd, buffer.ctypes.data + done, n_bytes - done, offset + done)
-        if got <= 0:
-            return False
-        done += got
-    return True
-
-
 @nb.njit(cache=True, nogil=True, parallel=True)
 def count_file_pairs(
     truth_fd: int,
@@ -262,8 +238,8 @@ def count_file_pairs(
             offset = 2 * (first_pair + window * WINDOW)
             n_bytes = 2 * WINDOW * k
             if not (
-                _read_fully(truth_fd, truth_text, n_bytes, offset)
-                and _read_fully(pred_fd, pred_text, n_bytes, offset)
+                read_fully(truth_fd, truth_text, n_bytes, offset)
+                and read_fully(pred_fd, pred_text, n_bytes, offset)
             ):
                 good[run] = False
                 break
@@ -282,8 +258,8 @@ def count_file_pairs(
     pred_text = np.empty(2 * WINDOW, dtype=np.uint8)
     offset = 2 * (first_pair + n_windows * WINDOW)
     if tail and not (
-        _read_fully(truth_fd, truth_text, 2 * tail, offset)
-        and _read_fully(pred_fd, pred_text, 2 * tail, offset)
+        read_fully(truth_fd, truth_text, 2 * tail, offset)
+        and read_fully(pred_fd, pred_text, 2 * tail, offset)
     ):
         return False
     truth_words = truth_text.view(np.uint16)

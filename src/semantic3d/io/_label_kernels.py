@@ -40,6 +40,7 @@ from semantic3d.io._label_grammar import (  # one definition for both parsers
     TEXT_LEN,
     VALUE_CAP,
 )
+from semantic3d.io._positioned_reads import read_fully
 
 _WINDOW = 4096  # lines checked at once by the branch-free fast path of parse_lines
 _MAX_BACKOFF = 1 << 20  # most lines parsed one by one before trying a window again
@@ -66,6 +67,55 @@ def parse_single_digit(words: np.ndarray, out: np.ndarray) -> int:
         out[i] = np.uint8(value & np.uint16(0xFF))
         bad += int(value > 9)
     return bad
+
+
+FILE_BLOCK_LINES = 1 << 18
+"""Lines :func:`read_single_digit_file` reads at a time on each thread (512 KiB of text):
+the block stays in the thread's cache while it is parsed, where a block read by the
+interpreter (megabytes, so that its calls are few) is written to memory and read back."""
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def read_single_digit_file(
+    fd: int, first: int, out: np.ndarray, block_lines: int, n_threads: int
+) -> bool:  # pragma: no cover - compiled
+    """Read lines ``first..first + len(out)`` of a file of ``d\\n`` lines into ``out``.
+
+    The lines are split into one run of whole blocks per thread of ``n_threads`` (numba's
+    count); each run reads its blocks of ``block_lines`` lines (:data:`FILE_BLOCK_LINES`
+    in use) with ``pread``
+    into a buffer of its own (at offset twice the line number) and converts them as
+    :func:`parse_single_digit` does, into its slice of ``out`` (so the slice is first
+    touched by the thread that fills it). True when every line is a ``d\\n`` line; False
+    at a line of another shape, or a read that fails or ends early (``out`` then holds
+    anything): the caller reads the file with the checking parser.
+    """
+    n = out.shape[0]
+    n_blocks = (n + block_lines - 1) // block_lines
+    runs = max(1, min(n_threads, n_blocks))
+    per_run = (n_blocks + runs - 1) // runs
+    good = np.ones(runs, dtype=np.bool_)
+    for run in nb.prange(runs):
+        text = np.empty(2 * min(n, block_lines), dtype=np.uint8)
+        words = text.view(np.uint16)
+        for block in range(run * per_run, min(n_blocks, (run + 1) * per_run)):
+            start = block * block_lines
+            lines = min(n - start, block_lines)
+            if not read_fully(fd, text, 2 * lines, 2 * (first + start)):
+                good[run] = False
+                break
+            # slices indexed from 0, so numba wraps no index as a negative one
+            # (that check per line kept the loop scalar)
+            block_out = out[start : start + lines]
+            bad = False
+            for k in range(lines):
+                value = np.uint16(words[k] - np.uint16(_PAIR_ZERO))
+                block_out[k] = np.uint8(value & np.uint16(0xFF))
+                bad |= bool(value > 9)
+            if bad:
+                good[run] = False
+                break
+    return bool(good.all())
 
 
 @nb.njit(cache=True, nogil=True)

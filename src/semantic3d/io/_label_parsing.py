@@ -59,6 +59,18 @@ def parse_single_digit(block: np.ndarray, out: np.ndarray) -> int:
     return int(np.count_nonzero((digits > 9) | (block[1::2] != 10)))
 
 
+def read_single_digit_file(fd: int, first: int, out: np.ndarray, *, block_lines: int = 0) -> bool:
+    """Read lines ``first..first + len(out)`` of the file ``fd`` (``d\n`` lines, read with
+    ``pread``: the caller checks ``os.pread``) into ``out`` on this thread's numba threads;
+    whether every line had that shape (else ``out`` holds anything). ``block_lines``: the
+    lines each thread reads at a time (default the kernel's)."""
+    import numba
+
+    kernels = _kernels()
+    lines = block_lines or kernels.FILE_BLOCK_LINES
+    return bool(kernels.read_single_digit_file(fd, first, out, lines, numba.get_num_threads()))
+
+
 def parse_lines(
     buf: np.ndarray,
     start: int,

@@ -2,8 +2,9 @@
 
 Reading streams the file in blocks of whole lines. The benchmark's files hold one digit
 per line (``0``..``8``); those take a compiled fast path over all cores that validates
-every byte: :func:`read_labels` reads and parses pieces of the file on every thread, each
-straight into its slice of the result (no thread waits for another's read). Any
+every byte: :func:`read_labels` reads and parses blocks of the file on every thread in
+compiled code, each straight into its slice of the result (no thread waits for another's
+read, nor for the interpreter). Any
 other shape (CRLF line ends, blanks, several digits) falls back for that block to the
 checking parser :class:`~semantic3d.io.labelstream.LabelStream` runs
 (one parser for both: ``_label_parsing.parse_lines``; small files are parsed with numpy,
@@ -17,9 +18,7 @@ from __future__ import annotations
 import io
 import os
 import stat
-import threading
 from collections.abc import Generator, Iterable, Iterator
-from contextlib import closing
 from pathlib import Path
 
 import numpy as np
@@ -27,7 +26,6 @@ from numpy.typing import ArrayLike, NDArray
 
 from semantic3d.core.errors import DataFormatError
 from semantic3d.core.pointcloud import PointCloud
-from semantic3d.core.threads import map_in_threads
 from semantic3d.io import _label_grammar as grammar
 from semantic3d.io import _label_parsing as parsing
 from semantic3d.io.chunks import (
@@ -105,12 +103,11 @@ def _iter_mapped_single_digit(
     return n, True
 
 
-_PIECE_LABELS = 1 << 21
-"""Labels per piece of :func:`read_labels` (4 MB of text): each thread reads its pieces
-into a buffer of its own and parses them from there, so reading is as parallel as
-parsing. Reads, not a memory map: on virtual machines each page fault of a mapped file
-cost more than the parse (a 128 MB file: 1.4 s mapped, against 0.07 s read on a laptop).
-"""
+_PIECE_LABELS = 1 << 25
+"""Labels :func:`read_labels` reads in one call of the compiled reader (64 MiB of text):
+Ctrl-C is seen between calls."""
+_BLOCK_LINES = 0
+"""Lines each thread reads at a time (0: the compiled reader's own, 512 KiB of text)."""
 
 
 def _pairs_file_size(path: Path) -> int | None:
@@ -125,66 +122,40 @@ def _pairs_file_size(path: Path) -> int | None:
     return int(size)
 
 
-def _read_fully(stream: io.RawIOBase, buffer: NDArray[np.uint8], offset: int | None = None) -> int:
-    """Fill ``buffer`` from ``stream`` (a raw file): from where it stands, or with
-    positioned reads from ``offset`` (the file position untouched, so threads can read one
-    file side by side); the bytes read (fewer only at the end)."""
+def _read_fully(stream: io.RawIOBase, buffer: NDArray[np.uint8]) -> int:
+    """Fill ``buffer`` from ``stream`` (a raw file); the bytes read (fewer only at the end)."""
     view = memoryview(buffer.data)
     done = 0
     while done < len(view):
-        if offset is None:
-            read = stream.readinto(view[done:])
-        else:
-            read = os.preadv(stream.fileno(), [view[done:]], offset + done)
+        read = stream.readinto(view[done:])
         if not read:
             break
         done += read
     return done
 
 
-_SEEK_LOCK = threading.Lock()  # where os.preadv is missing (Windows), reads take turns
-
-
-def _read_at(stream: io.RawIOBase, buffer: NDArray[np.uint8], offset: int) -> int:
-    """Fill ``buffer`` from ``stream`` at ``offset``; the bytes read (fewer only at the end).
-    Threads read side by side where the platform has positioned reads."""
-    if hasattr(os, "preadv"):
-        return _read_fully(stream, buffer, offset)
-    with _SEEK_LOCK:
-        stream.seek(offset)
-        return _read_fully(stream, buffer)
-
-
 def _read_single_digit(path: Path) -> NDArray[np.uint8] | None:
-    """All labels of a file of ``d\n`` lines, else None (another shape, a small file).
+    """All labels of a file of ``d\n`` lines, else None (another shape, a small file, or
+    a platform without positioned reads).
 
-    The file is read in pieces, each by one thread of the budget: a positioned read into
-    that thread's buffer, then the compiled check-and-convert into its slice of the
-    result (the pieces' slices are disjoint, so the result is the same for any count).
+    Compiled code reads the file itself: each of the thread budget's threads reads its own
+    blocks with ``pread`` into a buffer that stays in its cache and converts them into its
+    slice of the result (disjoint slices, so the result is the same for any count). No
+    interpreter between blocks: with the reads and the parse in the interpreter's hands,
+    16 threads queued for its lock and the blocks' copies left the cache.
     """
     size = _pairs_file_size(path)
-    if size is None:
+    if size is None or not hasattr(os, "pread"):
         return None
     n = size // 2
     out = np.empty(n, np.uint8)
-    buffers = threading.local()
-
-    def piece(start: int) -> bool:
-        stop = min(start + _PIECE_LABELS, n)
-        buffer = getattr(buffers, "text", None)
-        if buffer is None:
-            buffer = buffers.text = np.empty(2 * min(_PIECE_LABELS, n), np.uint8)
-        text = buffer[: 2 * (stop - start)]
-        if _read_at(stream, text, 2 * start) != text.size:
-            return False  # the file shrank meanwhile: the checking reader says how
-        return parsing.parse_single_digit(text, out[start:stop]) == 0
-
     try:
         with path.open("rb", buffering=0) as stream:
-            pieces = map_in_threads(piece, range(0, n, _PIECE_LABELS), name="read-labels")
-            with closing(pieces):  # every task has ended before the file closes
-                if not all(pieces):  # stops at the first piece of another shape
-                    return None
+            fd = stream.fileno()
+            for start in range(0, n, _PIECE_LABELS):
+                piece = out[start : start + _PIECE_LABELS]
+                if not parsing.read_single_digit_file(fd, start, piece, block_lines=_BLOCK_LINES):
+                    return None  # another shape, or the file shrank: the checking reader says
     except OSError:
         return None
     return out
@@ -193,7 +164,7 @@ def _read_single_digit(path: Path) -> NDArray[np.uint8] | None:
 def read_labels(path: str | Path) -> NDArray[np.uint8]:
     """All labels of ``path`` as one uint8 array.
 
-    A file of ``d\n`` lines (the benchmark's) is read in pieces, each read and parsed into
+    A file of ``d\n`` lines (the benchmark's) is read in blocks, each read and parsed into
     the result by one of the thread budget's threads; any other shape is read as
     :func:`iter_labels` reads it.
     """
