@@ -21,6 +21,10 @@ files, in the same run:
   (``predict_scan``, labels and run record written), with the model trained below;
 - ``train``: :func:`semantic3d.baselines.covariance.training.train_covariance_model` on the
   Oakland scans (``--oakland``; three simulated scans when absent), default configuration;
+- ``compute`` and ``bandwidth``: the machine's own ceilings (``_ceilings.py``): arithmetic
+  in registers, the same on every thread, and a stream through arrays far beyond the
+  caches; a path's speed-up is read against theirs (the last table: from 2 threads to the
+  most, as a share of the compute ceiling's);
 - ``evaluate``: :func:`semantic3d.evaluation.evaluate_submission` of 8 scans (links to the
   scan's labels 4 times over, 16 on 16 cores: ground truth and a prediction of it), label
   pairs per second.
@@ -70,7 +74,21 @@ from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "out"
-PATHS = ("iter_points", "read_labels", "simulate", "predict", "train", "evaluate")
+PATHS = (
+    "compute",
+    "bandwidth",
+    "iter_points",
+    "read_labels",
+    "simulate",
+    "predict",
+    "train",
+    "evaluate",
+)
+CEILINGS = ("compute", "bandwidth")
+"""The machine's own scaling (``_ceilings.py``), not a path of the package."""
+SPIN_STEPS = 1 << 27  # multiply-add rounds a thread: about 0.3 s
+TRIAD_BYTES = 3 << 29  # the three arrays of the bandwidth ceiling (1.5 GiB), beyond any cache
+TRIAD_ROUNDS = 8
 PEERS = {"iter_points": "pyarrow.csv", "read_labels": "pyarrow.csv"}
 N_EVALUATED_SCANS = 8
 WARM_POINTS = 1_000_000  # the scan labelled once before the timed runs (kernels compiled)
@@ -255,7 +273,33 @@ def child(job: dict[str, Any]) -> dict[str, Any]:
     scan = Path(job["scan"])
     outputs: list[Path] = []  # files the measured runs wrote, digested after them
     floor: Callable[[], int] | None = None  # the reads a path cannot do without, alone
-    if path == "iter_points":
+    if path == "compute":
+        import _ceilings
+
+        def run() -> int:
+            _ceilings.spin(n, SPIN_STEPS)
+            return n * SPIN_STEPS * _ceilings.CHAINS  # multiply-adds
+
+        run_small, peer = None, None
+    elif path == "bandwidth":
+        import numpy as np
+
+        import _ceilings
+
+        size = TRIAD_BYTES // 24
+        arrays = [np.empty(size) for _ in range(3)]
+        for array in arrays:  # each thread first touches the slice it streams
+            _ceilings.triad(array, array, array, n)
+        arrays[1][:] = 1.0
+        arrays[2][:] = 2.0
+
+        def run() -> int:
+            for _ in range(TRIAD_ROUNDS):
+                _ceilings.triad(*arrays, n)
+            return TRIAD_ROUNDS * 3 * 8 * size  # bytes read and written
+
+        run_small, peer = None, None
+    elif path == "iter_points":
         from semantic3d.io import iter_ascii_points
 
         def run() -> int:
@@ -565,6 +609,30 @@ def _print_timeline(timeline: dict[str, Any], n: int) -> None:
         )
 
 
+def _print_against_the_machine(summary: dict[str, dict[str, Any]], counts: list[int]) -> None:
+    """Each path's speed-up from 2 threads (1 where 2 was not run) to the most, beside the
+    machine's own: the compute ceiling's is the most a compute-bound path can gain."""
+    ceiling = summary.get("compute")
+    if ceiling is None or len(counts) < 2:
+        return
+    low = 2 if 2 in counts and counts[-1] > 2 else counts[0]
+    top = counts[-1]
+
+    def gain(path: str) -> float:
+        rates = summary[path]["rates"]
+        return float(rates[top] / rates[low])
+
+    print(
+        f"\nAgainst the machine: speed-up from {low} to {top} threads, and its share of the "
+        f"compute ceiling's ({gain('compute'):.2f}x"
+        + (f"; bandwidth {gain('bandwidth'):.2f}x" if "bandwidth" in summary else "")
+        + ")"
+    )
+    for path in summary:
+        if path not in CEILINGS:
+            print(f"{path:<12} {gain(path):5.2f}x  {gain(path) / gain('compute'):4.0%}")
+
+
 def _print_where(rows: list[dict[str, Any]], n: int) -> None:
     few = max(1, n // 4)
     print(f"\nWhere at most {few} of {n} threads ran (share of all samples; one line a thread)")
@@ -705,6 +773,7 @@ def main() -> None:
             s = amdahl(speedups)
             two = next((r for r in rows if r["path"] == path and r["threads"] == 2), None)
             summary[path] = {
+                "rates": rates,
                 "speedups": speedups,
                 "amdahl_serial_fraction": s,
                 "predicted_speedup_16": None if s is None else 1 / (s + (1 - s) / 16),
@@ -726,6 +795,7 @@ def main() -> None:
             + f"; on 16 threads {fit['predicted_speedup_16']:.1f}x, "
             f"{fit['predicted_rate_16'] / 1e6:.3f} M/s"
         )
+    _print_against_the_machine(summary, counts)
     if args.where:
         _print_where(rows, counts[-1])
     OUT.mkdir(parents=True, exist_ok=True)
