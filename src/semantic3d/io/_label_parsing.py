@@ -60,7 +60,7 @@ def parse_single_digit(block: np.ndarray, out: np.ndarray) -> int:
 
 
 def read_single_digit_file(fd: int, first: int, out: np.ndarray, *, block_lines: int = 0) -> bool:
-    """Read lines ``first..first + len(out)`` of the file ``fd`` (``d\n`` lines, read with
+    """Read lines ``first..first + len(out)`` of the file ``fd`` (``d\\n`` lines, read with
     ``pread``: the caller checks ``os.pread``) into ``out`` on this thread's numba threads;
     whether every line had that shape (else ``out`` holds anything). ``block_lines``: the
     lines each thread reads at a time (default the kernel's)."""
