@@ -612,8 +612,7 @@ def _print_timeline(timeline: dict[str, Any], n: int) -> None:
 def _print_against_the_machine(summary: dict[str, dict[str, Any]], counts: list[int]) -> None:
     """Each path's speed-up from 2 threads (1 where 2 was not run) to the most, beside the
     machine's own: the compute ceiling's is the most a compute-bound path can gain."""
-    ceiling = summary.get("compute")
-    if ceiling is None or len(counts) < 2:
+    if "compute" not in summary or len(counts) < 2:
         return
     low = 2 if 2 in counts and counts[-1] > 2 else counts[0]
     top = counts[-1]
