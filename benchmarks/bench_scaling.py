@@ -270,7 +270,7 @@ def child(job: dict[str, Any]) -> dict[str, Any]:
     n = int(job["threads"])
     set_thread_limit(n)
     path, work = job["path"], Path(job["work"])
-    scan = Path(job["scan"])
+    scan = Path(job.get("scan", ""))  # absent for the paths that read no scan
     outputs: list[Path] = []  # files the measured runs wrote, digested after them
     floor: Callable[[], int] | None = None  # the reads a path cannot do without, alone
     if path == "compute":
@@ -467,42 +467,81 @@ def _compile_prediction(model: Any, work: Path, n_points: int) -> None:
     predict_scan(model, warm.points_path, out_path=work / "warm.labels", workdir=work)
 
 
+SCAN_READERS = frozenset({"iter_points", "read_labels", "predict", "evaluate"})
+"""The paths that read the simulated scan (or its labels); the others need none of it."""
+
+
 def _prepare(args: argparse.Namespace, work: Path) -> dict[str, Any]:
-    """The scans, the training data, a model and the submission every run reads."""
+    """The scans, the training data, a model and the submission the chosen paths read
+    (nothing for the ceilings and ``simulate``: a run of those alone starts at once)."""
+    from semantic3d.core.threads import available_cores
+    from semantic3d.datasets.simulator import simulate
+
+    paths = set(args.paths)
+    shared: dict[str, Any] = {"points": args.points, "work": str(work)}
+    training = _training_folder(Path(args.oakland), work) if paths & {"predict", "train"} else None
+    if training is not None:
+        shared["training"] = str(training)
+    if not paths & SCAN_READERS:
+        return shared
+    scan = simulate("street", out=work / "scan", n_points=args.points, seed=1).scans[0]
+    shared.update(scan=str(scan.points_path), scan_points=scan.n_points)
+    if "predict" in paths:
+        small = simulate("street", out=work / "small", n_points=30_000, seed=3).scans[0]
+        assert training is not None
+        model = _tiled_model(training, work, min(args.points, WARM_POINTS))
+        shared.update(small=str(small.points_path), model=str(model))
+    if paths & {"read_labels", "evaluate"}:
+        shared.update(_label_files(scan.labels_path, work, label_copies(available_cores())))
+    return shared
+
+
+def _training_folder(oakland: Path, work: Path) -> Path:
+    """The Oakland scans where they are, else three simulated scenes."""
+    from semantic3d.datasets.simulator import simulate
+
+    if oakland.is_dir():
+        return oakland
+    training = work / "training"
+    training.mkdir(exist_ok=True)
+    for scene, seed in (("street", 4), ("village", 4), ("square", 4)):
+        made = simulate(scene, out=work / f"t{scene}", n_points=200_000, seed=seed).scans[0]
+        made.points_path.rename(training / f"{scene}.txt")
+        made.labels_path.rename(training / f"{scene}.labels")
+    return training
+
+
+def _tiled_model(training: Path, work: Path, warm_points: int) -> Path:
+    """A model trained on the training folder that labels any scan tile by tile (the path
+    of a large scan), its kernels compiled on a warm-up scan; the path of its file."""
     from semantic3d.baselines.covariance.config import CovarianceConfig
     from semantic3d.baselines.covariance.persistence import save_model
     from semantic3d.baselines.covariance.training import (
         find_labelled_scans,
         train_covariance_model,
     )
-    from semantic3d.core.threads import available_cores
-    from semantic3d.datasets.simulator import simulate
 
-    scan = simulate("street", out=work / "scan", n_points=args.points, seed=1).scans[0]
-    small = simulate("street", out=work / "small", n_points=30_000, seed=3).scans[0]
-    training = Path(args.oakland)
-    if not training.is_dir():
-        training = work / "training"
-        for scene, seed in (("street", 4), ("village", 4), ("square", 4)):
-            made = simulate(scene, out=work / f"t{scene}", n_points=200_000, seed=seed).scans[0]
-            training.mkdir(exist_ok=True)
-            made.points_path.rename(training / f"{scene}.txt")
-            made.labels_path.rename(training / f"{scene}.labels")
     model = train_covariance_model(find_labelled_scans(training), config=CovarianceConfig())
-    # the one scan is labelled tile by tile whatever its size (the path of a large scan)
     tiled = dataclasses.replace(
-        model.config,
-        prediction=dataclasses.replace(model.config.prediction, max_points_in_memory=0),
+        model,
+        config=dataclasses.replace(
+            model.config,
+            prediction=dataclasses.replace(model.config.prediction, max_points_in_memory=0),
+        ),
     )
-    save_model(dataclasses.replace(model, config=tiled), work / "model.s3dm")
-    _compile_prediction(
-        dataclasses.replace(model, config=tiled), work, min(args.points, WARM_POINTS)
-    )
+    save_model(tiled, work / "model.s3dm")
+    _compile_prediction(tiled, work, warm_points)
+    return work / "model.s3dm"
+
+
+def _label_files(truth: Path, work: Path, copies: int) -> dict[str, Any]:
+    """One file of every evaluated scan's labels for ``read_labels``, and the truth and
+    submission folders ``evaluate`` compares (hard links of one file of ``copies``
+    copies of the scan's labels)."""
     (work / "labels").mkdir()
     labels, per_scan = work / "labels" / "many.labels", work / "labels" / "scan.labels"
-    copies = label_copies(available_cores())
+    text = truth.read_bytes()
     for path, times in ((labels, copies * N_EVALUATED_SCANS), (per_scan, copies)):
-        text = scan.labels_path.read_bytes()
         with path.open("wb") as stream:
             for _ in range(times):
                 stream.write(text)
@@ -510,17 +549,7 @@ def _prepare(args: argparse.Namespace, work: Path) -> dict[str, Any]:
         (work / folder).mkdir()
         for number in range(N_EVALUATED_SCANS):
             os.link(per_scan, work / folder / f"scan{number}.labels")
-    return {
-        "scan": str(scan.points_path),
-        "small": str(small.points_path),
-        "training": str(training),
-        "model": str(work / "model.s3dm"),
-        "points": args.points,
-        "scan_points": scan.n_points,
-        "label_copies": copies,
-        "labels": str(labels),
-        "work": str(work),
-    }
+    return {"label_copies": copies, "labels": str(labels)}
 
 
 def _open_at(spans: list[dict[str, Any]], t: float) -> list[dict[str, Any]]:

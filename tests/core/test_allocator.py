@@ -67,3 +67,69 @@ def test_elsewhere_nothing_is_changed(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(allocator.platform, "libc_ver", lambda: ("musl", "1.2"))
     assert allocator.keep_freed_memory() is False
     assert allocator.keep_freed_memory() is False  # answered once a process
+
+
+_ARENAS = """
+import ctypes, os, sys, tempfile, threading
+import numpy as np
+if sys.argv[1] == "keep":
+    from semantic3d.core.allocator import keep_freed_memory
+    assert keep_freed_memory()
+held, ready = [], threading.Barrier(8)
+def work():
+    held.append(np.ones(1 << 17))  # 1 MiB from this thread's arena
+    ready.wait()
+threads = [threading.Thread(target=work) for _ in range(8)]
+for thread in threads:
+    thread.start()
+for thread in threads:
+    thread.join()
+libc = ctypes.CDLL(None)
+libc.fopen.restype = ctypes.c_void_p
+libc.fopen.argtypes = [ctypes.c_char_p, ctypes.c_char_p]
+libc.malloc_info.argtypes = [ctypes.c_int, ctypes.c_void_p]
+libc.fclose.argtypes = [ctypes.c_void_p]
+with tempfile.TemporaryDirectory() as folder:
+    path = os.path.join(folder, "info.xml")
+    stream = libc.fopen(path.encode(), b"w")
+    assert libc.malloc_info(0, stream) == 0
+    libc.fclose(stream)
+    print(open(path).read().count("<heap nr="))
+"""
+
+
+def _arenas(mode: str, **environment: str) -> int:
+    import os
+
+    done = subprocess.run(
+        [sys.executable, "-c", _ARENAS, mode],
+        capture_output=True,
+        text=True,
+        check=True,
+        env={**os.environ, **environment},
+    )
+    return int(done.stdout.strip())
+
+
+@pytest.mark.skipif(not _GLIBC, reason="the policy is glibc's")
+def test_threads_share_a_few_arenas() -> None:
+    """Eight threads allocating at once get heaps of their own by default; under the
+    policy they share :func:`arena_limit`'s, so one thread's freed memory serves the next."""
+    from semantic3d.core.allocator import arena_limit
+    from semantic3d.core.threads import available_cores
+
+    assert _arenas("default") > arena_limit(available_cores())
+    assert _arenas("keep") == arena_limit(available_cores())
+
+
+@pytest.mark.skipif(not _GLIBC, reason="the policy is glibc's")
+def test_the_users_arena_limit_is_kept() -> None:
+    assert _arenas("keep", MALLOC_ARENA_MAX="5") == 5
+    assert _arenas("keep", GLIBC_TUNABLES="glibc.malloc.arena_max=4") == 4
+
+
+def test_a_few_arenas_for_every_machine() -> None:
+    from semantic3d.core.allocator import MIN_ARENAS, arena_limit
+
+    limits = [arena_limit(cores) for cores in (1, 2, 16, 23, 24, 64, 256)]
+    assert limits == [MIN_ARENAS] * 4 + [3, 8, 32]
