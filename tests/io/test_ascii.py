@@ -244,3 +244,41 @@ def test_round_trip_and_chunked_equals_whole(
     )
     assert all(c.n_points == chunk_size for c in chunks[:-1])
     assert PointCloud.concatenate(chunks).equals(cloud) or n == 0
+
+
+def _mapped_resident_kib(path: Path) -> int | None:
+    """Resident KiB of this process's mappings of ``path`` (None: no such mapping)."""
+    resident, inside = None, False
+    for line in Path("/proc/self/smaps").read_text().splitlines():
+        fields = line.split()
+        if fields and "-" in fields[0] and len(fields) >= 5:  # a mapping's header line
+            inside = fields[-1] == str(path)
+        elif inside and fields[0] == "Rss:":
+            resident = (resident or 0) + int(fields[1])
+    return resident
+
+
+@pytest.mark.skipif(not Path("/proc/self/smaps").exists(), reason="Linux's mapping table")
+def test_pages_behind_the_cursor_leave_the_mapping(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Resident memory does not grow with the file: halfway through a mapped scan, the
+    pages already parsed are no longer this process's (they stay in the page cache)."""
+    import semantic3d.io._point_reader as reader
+
+    monkeypatch.setattr(reader, "_RELEASE_BYTES", 256 << 10)  # steps of 256 KiB
+    cloud = random_cloud(150_000, seed=8)
+    path = tmp_path / "scan.txt"
+    write_ascii_points(path, [cloud])
+    size_kib = path.stat().st_size // 1024
+    assert size_kib > 4_000
+    chunks = iter_ascii_points(path, chunk_size=1 << 16, block_bytes=64 << 10)
+    read, resident = 0, []
+    for chunk in chunks:
+        read += chunk.n_points
+        resident.append(_mapped_resident_kib(path))
+    assert read == cloud.n_points
+    middle = [kib for kib in resident[len(resident) // 3 :] if kib is not None]
+    assert middle, "the scan was read through a mapping"
+    # a step or two ahead of the cursor and the batch being parsed, not the half read
+    assert max(middle) < size_kib // 4

@@ -205,3 +205,58 @@ def kernels_read(fd: int, first: int, out: np.ndarray) -> bool:
     from semantic3d.io import _label_kernels as kernels
 
     return bool(kernels.read_single_digit_file(fd, first, out, 777, 3))
+
+
+def _window_rows(
+    text: bytes, n_segments: int, n_threads: int, room: int
+) -> tuple[int, int, int, np.ndarray]:
+    from semantic3d.io import _ascii_kernels as kernels
+
+    buf = np.frombuffer(text + bytes(kernels.FAST_MARGIN), np.uint8)
+    rows = text.count(b"\n")
+    xyz = np.full((rows, 3), np.nan)
+    intensity, rgb = np.zeros(rows, np.int32), np.zeros((rows, 3), np.uint8)
+    slow = np.empty((n_segments, 128, 4), np.int64)
+    state = np.zeros((n_segments, kernels.STATE_SIZE), np.int64)
+    n_lines, used, end = kernels.parse_window(
+        buf,
+        buf.size,
+        0,
+        len(text),
+        n_segments,
+        0,
+        room,
+        xyz,
+        intensity,
+        rgb,
+        slow,
+        state,
+        n_threads,
+    )
+    assert not state[:used, kernels.STATE_STATUS].any()
+    ends = state[:used, kernels.STATE_END]
+    assert (np.diff(ends) >= 0).all() and ends[-1] == end  # segments in order, none crossing
+    return int(n_lines), int(used), int(end), xyz[: int(n_lines)]
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    widths=st.lists(st.integers(0, 60), min_size=1, max_size=80),
+    n_segments=st.integers(1, 120),
+    n_threads=st.integers(1, 4),
+    room=st.integers(1, 100),
+)
+def test_a_window_parses_the_same_in_any_number_of_segments(
+    widths: list[int], n_segments: int, n_threads: int, room: int
+) -> None:
+    """Segments cut where their equal byte ranges begin a line: lines of any length (some
+    longer than a segment, so that several segments start on one line and hold none),
+    more segments than lines, and the window cut after ``room`` lines."""
+    lines = [f"{i} {'1' * (w + 1)} -2.5 7 1 2 3\n".encode() for i, w in enumerate(widths)]
+    text = b"".join(lines)
+    n_lines, _, end, xyz = _window_rows(text, n_segments, n_threads, room)
+    whole = _window_rows(text, 1, 1, room)
+    assert n_lines == min(room, len(lines)) == whole[0]
+    assert end == len(b"".join(lines[:n_lines])) == whole[2]
+    assert np.array_equal(xyz, whole[3], equal_nan=True)  # wide values are deferred: NaN
+    assert xyz[:, 0].tolist() == list(range(n_lines))

@@ -16,9 +16,9 @@ exponents) is *deferred*: its position is recorded and the caller converts it wi
 correctly rounded general algorithm (numpy's, which is CPython's ``dtoa``). Nothing is
 approximated.
 
-Work split (driven by :mod:`semantic3d.io._point_reader`): a window of whole lines is
-cut at newlines into segments (:func:`segment_bounds`), and one call of
-:func:`parse_window` counts the lines of each (:func:`count_lines`, vectorised) and
+Work split (driven by :mod:`semantic3d.io._point_reader`): one call of
+:func:`parse_window` cuts a window of whole lines at newlines into segments
+(:func:`line_start`), counts the lines of each (:func:`count_lines`, vectorised) and
 parses every segment on its own thread straight into the output arrays at its row
 offset: no copy, no Python per line or per segment (a thread pool fed from Python spent
 more time handing segments out than parsing them on 16 cores). The kernels release the
@@ -45,6 +45,7 @@ from numba.core import cgutils, types
 from numba.extending import intrinsic
 
 from semantic3d.core.atomic import take_next
+from semantic3d.io._page_advice import DROP_ADVICE, advise
 from semantic3d.io._point_text import (  # problem codes: one definition for both parsers
     BAD_NUMBER,
     COLUMN_COUNT,
@@ -484,7 +485,9 @@ def parse_segment(
 def parse_window(
     buf: np.ndarray,
     readable: int,
-    bounds: np.ndarray,
+    start: int,
+    stop: int,
+    n_segments: int,
     first_row: int,
     room: int,
     xyz: np.ndarray,
@@ -493,20 +496,30 @@ def parse_window(
     slow: np.ndarray,
     state: np.ndarray,
     n_threads: int,
+    drop_start: int = 0,
+    drop_stop: int = 0,
 ) -> tuple[int, int, int]:  # pragma: no cover - compiled
-    """Parse the segments ``bounds[s]:bounds[s + 1]`` of a window on ``n_threads`` threads,
-    each thread taking the next segment as it comes free (:func:`take_next`: equal bytes
-    are not equal time on a loaded machine).
+    """Parse the whole lines of ``buf[start:stop]`` in ``n_segments`` segments on
+    ``n_threads`` threads, each thread taking the next segment as it comes free
+    (:func:`take_next`: equal bytes are not equal time on a loaded machine).
 
-    Counts the lines of every segment (in parallel); when they are more than ``room``
+    Segment ``s`` holds the lines that start in the ``s``-th of ``n_segments`` equal byte
+    ranges (:func:`line_start`). The thread that counts a segment's lines finds its
+    bounds, so no thread touches the window's pages before the counting does (each
+    bound is one page first touched, on many cores a few hundred a window). Counts the
+    lines of every segment (in parallel); when they are more than ``room``
     rows, the window is cut after the ``room``-th line (only the segment holding the cut
     is scanned for it). Then parses every segment (in parallel) into the rows from
     ``first_row`` on, segment ``s`` at its count's offset; its :func:`parse_segment`
-    result and end go to ``state[s]``, its deferred tokens to ``slow[s]``. Returns
+    result and end go to ``state[s]``, its deferred tokens to ``slow[s]``. The pages of
+    ``buf[drop_start:drop_stop]`` (page-aligned, of a mapping, parsed before) are dropped
+    from the mapping by the thread that takes the first turn, while the others parse. Returns
     ``(lines, segments, end of the window)``. One call per window: the caller runs no
     Python per segment.
     """
-    n = bounds.shape[0] - 1
+    n = max(1, n_segments)
+    bounds = np.empty(n + 1, np.int64)
+    bounds[n] = stop
     counts = np.empty(n, np.int64)
     taken = np.zeros(2, np.int64)  # segments handed out: counted, then parsed
     for _ in nb.prange(max(1, min(n_threads, n))):
@@ -514,7 +527,10 @@ def parse_window(
             s = take_next(taken[0:1])
             if s >= n:
                 break
-            counts[s] = count_lines(buf, bounds[s], bounds[s + 1])
+            low = line_start(buf, start, stop, start + ((stop - start) * s) // n)
+            high = line_start(buf, start, stop, start + ((stop - start) * (s + 1)) // n)
+            bounds[s] = low
+            counts[s] = count_lines(buf, low, high)
     total = 0
     for s in range(n):
         total += counts[s]
@@ -535,7 +551,12 @@ def parse_window(
         row += counts[s]
     for _ in nb.prange(max(1, min(n_threads, n))):
         while True:
-            s = take_next(taken[1:2])
+            ticket = take_next(taken[1:2])  # 0: the pages to drop, then the segments
+            if ticket == 0:
+                if drop_stop > drop_start:
+                    advise(buf.ctypes.data + drop_start, drop_stop - drop_start, DROP_ADVICE)
+                continue
+            s = ticket - 1
             if s >= n:
                 break
             status, pos, last, n_slow = _run(
@@ -550,17 +571,12 @@ def parse_window(
 
 
 @nb.njit(cache=True, nogil=True)
-def segment_bounds(buf: np.ndarray, start: int, stop: int, n_segments: int) -> np.ndarray:
-    """Byte offsets splitting ``buf[start:stop]`` into ``n_segments`` runs of whole lines."""
-    bounds = np.empty(n_segments + 1, np.int64)
-    bounds[0] = start
-    for s in range(1, n_segments):
-        pos = max(start + ((stop - start) * s) // n_segments, bounds[s - 1])
-        while start < pos < stop and buf[pos - 1] != 10:
-            pos += 1
-        bounds[s] = pos
-    bounds[n_segments] = stop
-    return bounds
+def line_start(buf: np.ndarray, start: int, stop: int, pos: int) -> int:  # pragma: no cover
+    """The first line start of ``buf[start:stop]`` at or after ``pos`` (``stop`` if none):
+    segments cut there hold whole lines, and cuts at growing ``pos`` never cross."""
+    while start < pos < stop and buf[pos - 1] != 10:
+        pos += 1
+    return pos
 
 
 @nb.njit(cache=True, nogil=True)

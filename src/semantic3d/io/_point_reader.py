@@ -39,8 +39,9 @@ _SEGMENT_BYTES = 1 << 16  # the least worth a thread
 _SLOW_CAPACITY = 4096  # deferred tokens per segment before it pauses for conversion
 _TOKEN_WIDTH = 64
 _RELEASE_BYTES = 16 << 20
-_Region = tuple[np.ndarray, int, int, int]
-"""A buffer, the range of whole lines to parse in it, and how far it may be read."""
+_Region = tuple[np.ndarray, int, int, int, int]
+"""A buffer, the range of whole lines to parse in it, how far it may be read, and the
+(page-aligned) offset before which its pages may be dropped from its mapping (0: none)."""
 
 
 def iter_point_batches(path: Path, chunk_size: int, window_bytes: int) -> Iterator[PointCloud]:
@@ -90,18 +91,19 @@ class _Reader:
         self.state = np.zeros((self.max_segments, kernels.STATE_SIZE), np.int64)
         self.lines_before = 0  # lines of earlier batches
         self.bytes_left: int | None = None
+        self.dropped = 0  # the mapping's pages before this offset are dropped
 
     def run(self, regions: Iterator[_Region], size: int | None) -> Iterator[PointCloud]:
         self.bytes_left = size
         batch = self._new_batch()
-        for buf, start, stop, readable in regions:
+        for buf, start, stop, readable, droppable in regions:
             pos = start
             while pos < stop:
                 if batch.filled == batch.capacity:
                     yield from batch.chunks(self.chunk_size)
                     self.lines_before += batch.filled
                     batch = self._new_batch()
-                pos = self._parse_window(buf, readable, pos, stop, batch)
+                pos = self._parse_window(buf, readable, pos, stop, batch, droppable)
         if batch.filled:
             yield from batch.chunks(self.chunk_size)
 
@@ -116,18 +118,21 @@ class _Reader:
         return _Batch(capacity)
 
     def _parse_window(
-        self, buf: np.ndarray, readable: int, pos: int, stop: int, batch: _Batch
+        self, buf: np.ndarray, readable: int, pos: int, stop: int, batch: _Batch, droppable: int
     ) -> int:
         window_stop = kernels.window_end(buf, pos, pos + self.window_bytes, stop, MAX_LINE_BYTES)
         if window_stop < 0:
             raise _long_line_error(self.path)
         room = batch.capacity - batch.filled
         n_segments = int(max(1, min(self.max_segments, (window_stop - pos) // _SEGMENT_BYTES)))
-        bounds = kernels.segment_bounds(buf, pos, window_stop, n_segments)
+        drop_start = self.dropped
+        self.dropped = max(self.dropped, droppable)
         n_lines, n_segments, window_stop = kernels.parse_window(
             buf,
             readable,
-            bounds,
+            pos,
+            window_stop,
+            n_segments,
             batch.filled,
             room,
             batch.xyz,
@@ -136,6 +141,8 @@ class _Reader:
             self.slow,
             self.state,
             numba.get_num_threads(),
+            drop_start,
+            self.dropped,
         )
         state = self.state[:n_segments]
         if state[:, kernels.STATE_STATUS].any() or state[:, kernels.STATE_SLOW].any():
@@ -226,7 +233,7 @@ def _mapped_regions(
         if body_end < size:
             tail = mapped[body_end:size] + b"\n" + bytes(kernels.FAST_MARGIN)
             padded = np.frombuffer(tail, np.uint8)
-            yield padded, 0, size - body_end + 1, padded.size
+            yield padded, 0, size - body_end + 1, padded.size, 0
     finally:
         del buf
 
@@ -234,12 +241,14 @@ def _mapped_regions(
 def _released(
     mapped: mmap.mmap, buf: np.ndarray, body_end: int, size: int, step: int
 ) -> Iterator[_Region]:
-    """Yield the body in steps, dropping the pages behind the cursor from the mapping.
+    """Yield the body in steps, each with the offset before which the pages behind the
+    cursor may be dropped from the mapping (the parser's threads drop them:
+    :func:`~semantic3d.io._ascii_kernels.parse_window`).
 
     Dropped pages stay in the page cache; they only stop counting as this process's
     resident memory (a 17 GB scan would otherwise look like a 17 GB process).
     """
-    released = 0
+    behind = 0  # the previous steps' whole pages
     start = 0
     while start < body_end:
         stop = min(start + step, body_end)
@@ -248,12 +257,8 @@ def _released(
         ahead = stop - stop % mmap.PAGESIZE
         with suppress(OSError, ValueError):
             mapped.madvise(mmap.MADV_WILLNEED, ahead, min(step, size - ahead))
-        yield buf, start, stop, size
-        keep = stop - stop % mmap.PAGESIZE
-        if keep > released:
-            with suppress(OSError, ValueError):
-                mapped.madvise(mmap.MADV_DONTNEED, released, keep - released)
-            released = keep
+        yield buf, start, stop, size, behind
+        behind = stop - stop % mmap.PAGESIZE
         start = stop
 
 
@@ -261,4 +266,4 @@ def _block_regions(path: Path, block_bytes: int) -> Generator[_Region, None, Non
     for block in iter_line_blocks(path, block_bytes=max(block_bytes, 1 << 16)):
         view = block.view()
         view.flags.writeable = False
-        yield view, 0, view.size, view.size
+        yield view, 0, view.size, view.size, 0
