@@ -26,13 +26,13 @@ DROP_ADVICE: int = getattr(mmap, "MADV_DONTNEED", 0)
 """The advice that drops pages from a mapping (0 where there is none: nothing is dropped)."""
 
 _SIGNATURE = signature(types.intc, types.uintp, types.uintp, types.intc)
-_AS_C = ctypes.CFUNCTYPE(ctypes.c_int, ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int)
 
 if not DROP_ADVICE:  # pragma: no cover - platforms without madvise
 
     def _nothing(address: int, length: int, advice: int) -> int:
         return 0
 
+    _AS_C = ctypes.CFUNCTYPE(ctypes.c_int, ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int)
     _NOTHING = _AS_C(_nothing)  # kept alive with the module
     binding.add_symbol("madvise", ctypes.cast(_NOTHING, ctypes.c_void_p).value)
 

@@ -255,7 +255,7 @@ def _released(
         if stop < body_end:  # whole lines only: extend to the next newline
             stop = mapped.find(b"\n", stop - 1) + 1
         ahead = stop - stop % mmap.PAGESIZE
-        with suppress(OSError, ValueError):
+        with suppress(OSError, ValueError, AttributeError):  # no madvise: nothing to advise
             mapped.madvise(mmap.MADV_WILLNEED, ahead, min(step, size - ahead))
         yield buf, start, stop, size, behind
         behind = stop - stop % mmap.PAGESIZE
