@@ -479,17 +479,15 @@ def _prepare(args: argparse.Namespace, work: Path) -> dict[str, Any]:
 
     paths = set(args.paths)
     shared: dict[str, Any] = {"points": args.points, "work": str(work)}
-    training = _training_folder(Path(args.oakland), work) if paths & {"predict", "train"} else None
-    if training is not None:
-        shared["training"] = str(training)
+    if paths & {"predict", "train"}:
+        shared["training"] = str(_training_folder(Path(args.oakland), work))
     if not paths & SCAN_READERS:
         return shared
     scan = simulate("street", out=work / "scan", n_points=args.points, seed=1).scans[0]
     shared.update(scan=str(scan.points_path), scan_points=scan.n_points)
     if "predict" in paths:
         small = simulate("street", out=work / "small", n_points=30_000, seed=3).scans[0]
-        assert training is not None
-        model = _tiled_model(training, work, min(args.points, WARM_POINTS))
+        model = _tiled_model(Path(shared["training"]), work, min(args.points, WARM_POINTS))
         shared.update(small=str(small.points_path), model=str(model))
     if paths & {"read_labels", "evaluate"}:
         shared.update(_label_files(scan.labels_path, work, label_copies(available_cores())))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import platform
 import subprocess
 import sys
@@ -99,8 +100,6 @@ with tempfile.TemporaryDirectory() as folder:
 
 
 def _arenas(mode: str, **environment: str) -> int:
-    import os
-
     done = subprocess.run(
         [sys.executable, "-c", _ARENAS, mode],
         capture_output=True,

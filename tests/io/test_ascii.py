@@ -1,5 +1,7 @@
 from __future__ import annotations
 
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +18,7 @@ from semantic3d.io import (
 )
 from semantic3d.io.labels import format_labels_bytes
 from tests.factories import random_cloud
+from tests.mappings import mapped_kib
 
 
 def _write(tmp_path: Path, text: str, name: str = "scan.txt") -> Path:
@@ -246,18 +249,6 @@ def test_round_trip_and_chunked_equals_whole(
     assert PointCloud.concatenate(chunks).equals(cloud) or n == 0
 
 
-def _mapped_resident_kib(path: Path) -> int | None:
-    """Resident KiB of this process's mappings of ``path`` (None: no such mapping)."""
-    resident, inside = None, False
-    for line in Path("/proc/self/smaps").read_text().splitlines():
-        fields = line.split()
-        if fields and "-" in fields[0] and len(fields) >= 5:  # a mapping's header line
-            inside = fields[-1] == str(path)
-        elif inside and fields[0] == "Rss:":
-            resident = (resident or 0) + int(fields[1])
-    return resident
-
-
 @pytest.mark.skipif(not Path("/proc/self/smaps").exists(), reason="Linux's mapping table")
 def test_pages_behind_the_cursor_leave_the_mapping(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
@@ -276,20 +267,16 @@ def test_pages_behind_the_cursor_leave_the_mapping(
     read, resident = 0, []
     for chunk in chunks:
         read += chunk.n_points
-        resident.append(_mapped_resident_kib(path))
+        resident.append(mapped_kib(path))
     assert read == cloud.n_points
-    middle = [kib for kib in resident[len(resident) // 3 :] if kib is not None]
-    assert middle, "the scan was read through a mapping"
+    assert max(resident) > 0, "the scan was read through a mapping"
     # a step or two ahead of the cursor and the batch being parsed, not the half read
-    assert max(middle) < size_kib // 4
+    assert max(resident[len(resident) // 3 :]) < size_kib // 4
 
 
 def test_a_scan_is_read_where_pages_cannot_be_advised(tmp_path: Path) -> None:
     """Where the C library has no ``madvise`` (Windows), the parser's kernels still
     compile (the symbol is bound to a function that does nothing) and read the same."""
-    import subprocess
-    import sys
-
     cloud = random_cloud(60_000, seed=9)
     path = tmp_path / "scan.txt"
     write_ascii_points(path, [cloud])

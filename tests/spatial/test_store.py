@@ -24,6 +24,7 @@ from semantic3d.spatial import (
     build_tile_store,
     open_cache_tiles,
 )
+from tests.mappings import mapped_kib
 
 
 def _cloud(n: int, *, seed: int = 5, extent: float = 3.0, labels: bool = True) -> PointCloud:
@@ -328,24 +329,6 @@ def test_kept_points_only_with_their_scan_positions(tmp_path: Path, buffer_point
                 assert core.cloud.equals(cloud[core.indices])
 
 
-def _mapped_kib(path: Path) -> int:
-    """Resident KiB of this process's mappings of ``path`` (Linux's smaps).
-
-    Found by searching the text for the path's header lines (a process with numba and
-    torch loaded has tens of thousands of smaps lines: splitting them all for each of
-    hundreds of reads cost most of this file's time); a mapping's ``Rss:`` is the first
-    after its header."""
-    text = Path("/proc/self/smaps").read_text()
-    header_end = f" {path}\n"
-    total = 0
-    at = text.find(header_end)
-    while at != -1:
-        rss = text.index("\nRss:", at)
-        total += int(text[rss + 5 : text.index("kB", rss)])
-        at = text.find(header_end, at + len(header_end))
-    return total
-
-
 def _mapped_while_reading_every_tile(folder: str, remap_bytes: int) -> dict[str, int]:
     """Build a 400 k-point store in ``folder`` and read every tile, maps reopened every
     ``remap_bytes``: the store file's resident KiB after sealing and at worst while reading."""
@@ -358,13 +341,13 @@ def _mapped_while_reading_every_tile(folder: str, remap_bytes: int) -> dict[str,
         _chunks(cloud, 50_000), Path(folder) / "s", grid=grid, buffer_points=20_000
     )
     points_file = Path(folder) / "s" / "points.npy"
-    sealed = _mapped_kib(points_file)
+    sealed = mapped_kib(points_file)
     seen, worst = 0, 0
     for tile in store.tiles:
         data = store.read(tile, halo_m=1.0)
         seen += data.core.cloud.n_points
         del data
-        worst = max(worst, _mapped_kib(points_file))
+        worst = max(worst, mapped_kib(points_file))
     return {
         "sealed_kib": sealed,
         "worst_kib": worst,

@@ -85,9 +85,9 @@ def read_single_digit_file(
     count); each run reads its blocks of ``block_lines`` lines (:data:`FILE_BLOCK_LINES`
     in use) with ``pread`` into a buffer of its own (at offset twice the line number) and
     converts them as :func:`parse_single_digit` does, into its slice of ``out`` (so the
-    slice is first touched by the thread that fills it). True when every line is a ``d\\n`` line; False
-    at a line of another shape, or a read that fails or ends early (``out`` then holds
-    anything): the caller reads the file with the checking parser.
+    slice is first touched by the thread that fills it). True when every line is a
+    ``d\\n`` line; False at a line of another shape, or a read that fails or ends early
+    (``out`` then holds anything): the caller reads the file with the checking parser.
     """
     n = out.shape[0]
     n_blocks = (n + block_lines - 1) // block_lines
