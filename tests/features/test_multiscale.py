@@ -502,3 +502,82 @@ def test_a_boxs_rows_are_found_within_the_levels_columns_across_it(
         first, last = _rows_across(chosen.keys, bounds[0], bounds[1], chosen.voxel_size_m)
         got = first + rows_in_box(chosen.xyz[first:last], bounds)
         np.testing.assert_array_equal(got, rows_in_box(chosen.xyz, bounds))
+
+
+def _with_lone_points(scene: PointCloud, lone_xyz: np.ndarray) -> PointCloud:
+    """``scene`` plus points at ``lone_xyz`` (labelled 1, grey)."""
+    n = lone_xyz.shape[0]
+    lone = PointCloud(
+        lone_xyz,
+        intensity=np.zeros(n, np.int32),
+        rgb=np.full((n, 3), 128, np.uint8),
+        labels=np.ones(n, np.uint8),
+    )
+    return PointCloud.concatenate([scene, lone])
+
+
+@pytest.mark.parametrize("brute_force_pairs", [1 << 26, 0], ids=["scanned", "tree"])
+def test_a_tile_of_fewer_than_k_voxels_beside_dense_ones_is_exact_from_small_boxes(
+    scene: PointCloud, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, brute_force_pairs: int
+) -> None:
+    """Three points in a tile of their own, 6 m past a dense scene's edge: at the fine
+    levels the box of their tile and halo holds fewer than k level points, so their
+    neighbours are looked for farther out. They get the whole scan's rows bit for bit, and
+    their rows are computed among the few hundred level points of their neighbours' ball
+    (a box grown by its own width and height described 800-2,100 of the scene's). The
+    bound on their reach is the same whether the grown box's points are scanned or put in a
+    tree (many queries)."""
+    import semantic3d.features.tiling as tiling
+
+    monkeypatch.setattr(tiling, "_BRUTE_FORCE_PAIRS", brute_force_pairs)
+
+    config = FeatureConfig(**{**_fields(SMALL), "cylinder_features": CYLINDER_FEATURES})
+    east = scene.xyz[:, 0].max()
+    middle = np.median(scene.xyz, axis=0)
+    cloud = _with_lone_points(
+        scene,
+        middle
+        + np.array([[0.0, 0.0, 0.5], [0.2, 0.3, 0.6], [0.1, -0.2, 1.4]])
+        + np.array([east - middle[0] + 6.0, 0.0, 0.0]),
+    )
+    expected = compute_multiscale_features(cloud, config=config).point_values()
+    described: list[int] = []
+    describe = tiling.compute_level_features
+
+    def spied(index, *args, **options):  # type: ignore[no-untyped-def]
+        described.append(index.n_points)
+        return describe(index, *args, **options)
+
+    got = np.full_like(expected, np.nan)
+    with _every_level_by_tile(cloud, config, 3.2, tmp_path) as scan:
+        at = np.floor((cloud.xyz[-1, :2] - scan.origin[:2]) / scan.tile_size_m)
+        tile = (int(at[0]), int(at[1]))
+        assert scan.store.count(tile) == 3
+        for features in scan.iter_features():
+            got[features.point_indices] = features.table.point_values()
+        monkeypatch.setattr(tiling, "compute_level_features", spied)
+        again = scan.tile_features(tile)
+    assert again is not None
+    assert np.array_equal(got, expected)
+    np.testing.assert_array_equal(again.table.point_values(), expected[-3:])
+    assert described.count(3) >= 2  # the first asks of the finest levels: the tile alone
+    assert max(described) < 600
+
+
+def test_a_scan_of_fewer_than_k_points_over_several_tiles_is_exact(tmp_path: Path) -> None:
+    """Five points over three tiles, k = 8: every box holds fewer than k points until it
+    holds the whole scan, and the rows are the whole scan's."""
+    config = FeatureConfig(**{**_fields(SMALL), "cylinder_features": CYLINDER_FEATURES})
+    xyz = np.array(
+        [[0.5, 0.5, 0.0], [0.7, 0.4, 0.3], [4.1, 0.6, 0.2], [7.9, 1.0, 1.0], [8.2, 1.1, 0.4]]
+    )
+    cloud = _with_lone_points(
+        PointCloud(np.empty((0, 3)), np.empty(0, np.int32), np.empty((0, 3), np.uint8)), xyz
+    )
+    expected = compute_multiscale_features(cloud, config=config).point_values()
+    got = np.full_like(expected, np.nan)
+    with _every_level_by_tile(cloud, config, 3.2, tmp_path) as scan:
+        assert len(scan.tiles) == 3
+        for features in scan.iter_features():
+            got[features.point_indices] = features.table.point_values()
+    assert np.array_equal(got, expected)

@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.spatial import cKDTree
 
 from semantic3d.core.errors import ShapeError
-from semantic3d.features.neighbourhoods import LevelIndex
+from semantic3d.features.neighbourhoods import LevelIndex, kth_squared_distances
 
 
 def test_neighbours_are_the_k_nearest_sorted_by_distance() -> None:
@@ -70,3 +72,24 @@ def test_empty_index_and_bad_queries_are_rejected() -> None:
         index.query(np.zeros((1, 3)), k=3)
     with pytest.raises(ShapeError, match=r"queries: expected \(m, 3\)"):
         LevelIndex(np.zeros((2, 3)), np.arange(2, dtype=np.int64)).query(np.zeros((1, 2)), k=1)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    n=st.integers(1, 300),
+    m=st.integers(1, 12),
+    k=st.integers(1, 20),
+    seed=st.integers(0, 2**32 - 1),
+    grid=st.booleans(),
+)
+def test_the_kth_squared_distance_by_a_scan_is_numpys(
+    n: int, m: int, k: int, seed: int, grid: bool
+) -> None:
+    """The k-th smallest squared distance of each query, ties (points on a grid) and
+    repeated points included, is what sorting every distance gives."""
+    k = min(k, n)
+    rng = np.random.default_rng(seed)
+    points = rng.integers(0, 4, (n, 3)).astype(np.float64) if grid else rng.normal(size=(n, 3))
+    queries = rng.normal(size=(m, 3))
+    expected = np.sort(((queries[:, None, :] - points[None]) ** 2).sum(axis=2), axis=1)[:, k - 1]
+    np.testing.assert_allclose(kth_squared_distances(points, queries, k), expected, rtol=1e-12)

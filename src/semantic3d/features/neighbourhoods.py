@@ -230,3 +230,33 @@ def _canonicalise(
                 break
             start = end
     return ambiguous
+
+
+# Hand-written: the k-th nearest distance of a handful of queries among up to millions of
+# points, without building a k-d tree over them (a tree costs far more than the scan).
+@numba.njit(cache=True, nogil=True, parallel=True)
+def kth_squared_distances(
+    points: NDArray[np.float64], queries: NDArray[np.float64], k: int
+) -> NDArray[np.float64]:  # pragma: no cover - compiled
+    """The ``k``-th smallest squared distance from each query to ``points`` (``n >= k``),
+    by a scan of every point: for a few queries (cost ``m * n``)."""
+    m = queries.shape[0]
+    out = np.empty(m, np.float64)
+    for row in numba.prange(m):
+        best = np.full(k, np.inf)  # ascending: the k smallest so far
+        qx = queries[row, 0]
+        qy = queries[row, 1]
+        qz = queries[row, 2]
+        for p in range(points.shape[0]):
+            dx = points[p, 0] - qx
+            dy = points[p, 1] - qy
+            dz = points[p, 2] - qz
+            d = dx * dx + dy * dy + dz * dz
+            if d < best[k - 1]:
+                j = k - 1
+                while j > 0 and best[j - 1] > d:
+                    best[j] = best[j - 1]
+                    j -= 1
+                best[j] = d
+        out[row] = best[k - 1]
+    return out

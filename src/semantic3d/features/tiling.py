@@ -71,7 +71,7 @@ from semantic3d.features.multiscale import (
     level_reach,
     level_rows,
 )
-from semantic3d.features.neighbourhoods import LevelIndex
+from semantic3d.features.neighbourhoods import LevelIndex, kth_squared_distances
 from semantic3d.features.pyramid import build_pyramid, grid_origin
 from semantic3d.spatial.grid import TileGrid, TileKey
 from semantic3d.spatial.store import TilePoints, TileStore, build_tile_store
@@ -121,6 +121,10 @@ parts' CPU time in a 10 M-point street scan's densest tile (levels 0-2 alike).""
 
 _BOUND_SAMPLE = 1 << 14
 """Queries sampled to place the parts' bounds."""
+
+_BRUTE_FORCE_PAIRS = 1 << 26
+"""Query-point pairs up to which a bound on the k-th distance scans every point (a few
+queries: milliseconds) rather than building a k-d tree (:meth:`TiledScan._reach_bound`)."""
 
 _SIDE_PIECES = 4
 """The queries a first ask leaves are asked again in this many boxes a side of it."""
@@ -934,7 +938,7 @@ class TiledScan:
                 if enough:
                     radius = kth[~exact] * (1.0 + 1e-6) + 2.0 * _SAFETY_M
                 else:
-                    radius = np.full(left.size, box[1] - box[0] + box[3] - box[2])
+                    radius = self._reach_bound(number, queries[left], box)
                 # after the first ask, a box a piece of each side of it: the queries left
                 # lie along its edges, and one box around them all held it all again
                 sides = (
@@ -946,6 +950,39 @@ class TiledScan:
                     chosen = sides == side
                     asks.append((left[chosen], _ball_box(queries[left[chosen]], radius[chosen])))
         return out
+
+    def _reach_bound(
+        self, number: int, queries: NDArray[np.float64], box: NDArray[np.float64]
+    ) -> NDArray[np.float64]:
+        """A reach at least each query's, with the halo test's margins, for queries whose
+        ``box`` held fewer than k level points (a sparse tile's few voxels).
+
+        The k-th distance among the points of the box grown about itself (doubled, again
+        while it holds fewer than k) bounds the true k-th distance, so the ball box of the
+        bound holds every neighbour and the next ask is exact. Only distances are computed
+        in the grown box: describing the queries there, as a box grown by its width and
+        height was, built a tree and cylinders over the dense tiles around for a handful
+        of rows. A level of fewer than k points gets the box's width plus height (the
+        boxes then grow until they hold the whole level)."""
+        config = self.config
+        k = config.k_neighbours
+        wide = np.array(box, dtype=np.float64)
+        while True:
+            grow = 0.5 * max(wide[1] - wide[0], wide[3] - wide[2])
+            wide += np.array([-grow, grow, -grow, grow])
+            xyz, keys, _ = self._gather(number, wide)
+            if xyz.shape[0] >= k:
+                break
+            if (wide[[0, 2]] <= self._tile_low).all() and (wide[[1, 3]] >= self._tile_high).all():
+                return np.full(queries.shape[0], box[1] - box[0] + box[3] - box[2])
+        if queries.shape[0] * xyz.shape[0] <= _BRUTE_FORCE_PAIRS:
+            reach = np.sqrt(kth_squared_distances(xyz, queries, k))
+            if config.cylinders:
+                reach = np.maximum(reach, config.cylinder_radius_m(number))
+        else:  # many queries (per-point rows): a tree over the grown box
+            reach = level_reach(LevelIndex(xyz, keys), queries, config=config, level=number)
+        bound: NDArray[np.float64] = reach * (1.0 + 1e-6) + 2.0 * _SAFETY_M
+        return bound
 
     def _gather(
         self, number: int, box: NDArray[np.float64]
