@@ -581,3 +581,27 @@ def test_a_scan_of_fewer_than_k_points_over_several_tiles_is_exact(tmp_path: Pat
         for features in scan.iter_features():
             got[features.point_indices] = features.table.point_values()
     assert np.array_equal(got, expected)
+
+
+def test_tiles_get_threads_by_their_voxels_not_their_points(tmp_path: Path) -> None:
+    """A tile of 20,000 points in a few voxels and one of 5,000 spread over thousands: the
+    second has the work (one row a voxel) and gets the threads, and is described first."""
+    from semantic3d.core.timeline import recording
+
+    rng = np.random.default_rng(7)
+    crowded = rng.uniform(0.0, 0.25, (20_000, 3)) + np.array([0.2, 0.2, 0.0])
+    spread = rng.uniform(0.0, 3.0, (5_000, 3)) + np.array([3.3, 0.1, 0.0])
+    cloud = _with_lone_points(
+        PointCloud(np.empty((0, 3)), np.empty(0, np.int32), np.empty((0, 3), np.uint8)),
+        np.concatenate([crowded, spread]),
+    )
+    with _every_level_by_tile(cloud, SMALL, 3.2, tmp_path) as scan, recording() as timeline:
+        assert sorted(scan.store.count(tile) for tile in scan.tiles) == [5_000, 20_000]
+        rows = list(scan.map_tiles(lambda features: features.point_indices.size, n_threads=4))
+    assert sorted(rows) == [5_000, 20_000]
+    tiles = sorted(
+        (step.start_s, step.attrs["points"], step.attrs["threads"])
+        for step in timeline.spans
+        if step.name == "tile"
+    )
+    assert [(points, threads) for _, points, threads in tiles] == [(5_000, 4), (20_000, 1)]
