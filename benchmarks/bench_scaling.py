@@ -601,8 +601,7 @@ def _print_timeline(timeline: dict[str, Any], n: int) -> None:
             found.extend(below(child["number"]))
         return found
 
-    print("the tiles still running when the last one started (start, end: seconds):")
-    for tile in sorted(_open_at(tiles, last_start), key=lambda t: -t["end_s"])[:8]:
+    def describe(tile: dict[str, Any]) -> str:
         steps = below(tile["number"])
         parts = []
         for name in ("features", "forest", "squares"):
@@ -629,11 +628,20 @@ def _print_timeline(timeline: dict[str, Any], n: int) -> None:
                 f"the longest {longest['end_s'] - longest['start_s']:.2f} s "
                 f"({longest['attrs'].get('rows')} rows)"
             )
-        print(
+        return (
             f"  tile {tile['attrs'].get('tile')}: {tile['attrs'].get('points'):,} points, "
             f"{tile['attrs'].get('threads')} threads, {tile['start_s']:.2f}-{tile['end_s']:.2f}: "
             + "; ".join(parts)
         )
+
+    # the tiles' shares of the threads go by their work: the largest shares should start
+    # together and end about together
+    print("the four tiles given the most threads (start, end: seconds):")
+    for tile in sorted(tiles, key=lambda t: (-t["attrs"].get("threads", 1), t["start_s"]))[:4]:
+        print(describe(tile))
+    print("the tiles still running when the last one started (start, end: seconds):")
+    for tile in sorted(_open_at(tiles, last_start), key=lambda t: -t["end_s"])[:8]:
+        print(describe(tile))
 
 
 def _print_against_the_machine(summary: dict[str, dict[str, Any]], counts: list[int]) -> None:
