@@ -99,7 +99,7 @@ _POINT_WORK_VOXELS = 0.025
 levels, forest rows and graph grow with its voxels, not its points: on one thread, a
 10 M-point street scan's densest tile held 68 % of the points and 40 % of the time, and
 level-0 voxels plus 1/40 a point gave each of its large tiles' time within 15 % (points
-alone: within 60 %). It only shares threads out among tiles, never changes a row."""
+alone: off by up to 70 %). It only shares threads out among tiles, never changes a row."""
 
 _PARTS_PER_THREAD = 4
 """A large tile level's queries are computed in up to this many parts a thread."""
