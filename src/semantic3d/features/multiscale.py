@@ -156,7 +156,7 @@ def compute_level_features(
     )
     if block is not target and block is not out:
         copy_rows(block, target)
-    reach = _reach(found.kth_distance, config, level)
+    reach = reach_of_kth(found.kth_distance, config, level)
     if config.cylinders:
         radius_m = config.cylinder_radius_m(level)
         width = len(config.cylinder_features)
@@ -179,10 +179,14 @@ def level_reach(
     """The reach :func:`compute_level_features` gives ``queries`` (the k-th neighbour
     distance, or the cylinder radius when larger), without their features."""
     queries = np.ascontiguousarray(queries, dtype=np.float64)
-    return _reach(index.query(queries, k=config.k_neighbours).kth_distance, config, level)
+    return reach_of_kth(index.query(queries, k=config.k_neighbours).kth_distance, config, level)
 
 
-def _reach(kth: NDArray[np.float64], config: FeatureConfig, level: int) -> NDArray[np.float64]:
+def reach_of_kth(
+    kth: NDArray[np.float64], config: FeatureConfig, level: int
+) -> NDArray[np.float64]:
+    """The reach of rows whose k-th neighbour lies at ``kth``: that distance, or the
+    level's cylinder radius when larger."""
     if config.cylinders:
         reach: NDArray[np.float64] = np.maximum(kth, config.cylinder_radius_m(level))
         return reach

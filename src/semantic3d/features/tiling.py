@@ -71,6 +71,7 @@ from semantic3d.features.multiscale import (
     fill_level_columns,
     level_reach,
     level_rows,
+    reach_of_kth,
 )
 from semantic3d.features.neighbourhoods import LevelIndex, kth_squared_distances
 from semantic3d.features.pyramid import build_pyramid, grid_origin
@@ -642,7 +643,7 @@ class TiledScan:
         points = self.store.count(tile)
         if self.config.per_point:
             return float(points)
-        return self._base_voxels.get(tile, points) + _POINT_WORK_VOXELS * points
+        return self._base_voxels[tile] + _POINT_WORK_VOXELS * points
 
     def __getstate__(self) -> dict[str, object]:
         """What travels to another process: paths and numbers, no cached pyramid or rows
@@ -1002,12 +1003,12 @@ class TiledScan:
             if (wide[[0, 2]] <= self._tile_low).all() and (wide[[1, 3]] >= self._tile_high).all():
                 return np.full(queries.shape[0], box[1] - box[0] + box[3] - box[2])
         if queries.shape[0] * xyz.shape[0] <= _BRUTE_FORCE_PAIRS:
-            reach = np.sqrt(kth_squared_distances(xyz, queries, k))
-            if config.cylinders:
-                reach = np.maximum(reach, config.cylinder_radius_m(number))
+            kth = np.sqrt(kth_squared_distances(xyz, queries, k))
         else:  # many queries (per-point rows): a tree over the grown box
-            reach = level_reach(LevelIndex(xyz, keys), queries, config=config, level=number)
-        bound: NDArray[np.float64] = reach * (1.0 + 1e-6) + 2.0 * _SAFETY_M
+            kth = LevelIndex(xyz, keys).query(queries, k=k).kth_distance
+        bound: NDArray[np.float64] = (
+            reach_of_kth(kth, config, number) * (1.0 + 1e-6) + 2.0 * _SAFETY_M
+        )
         return bound
 
     def _gather(
