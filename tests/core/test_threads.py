@@ -4,6 +4,7 @@ of ``--threads`` as the command line honours it (threads counted while commands 
 from __future__ import annotations
 
 import json
+import math
 import os
 import subprocess
 import sys
@@ -13,9 +14,12 @@ from collections import Counter
 from pathlib import Path
 
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from semantic3d.core import threads
 from semantic3d.core.threads import (
+    apportion_threads,
     iter_ahead,
     map_in_threads,
     numba_threads,
@@ -402,3 +406,45 @@ def test_threads_computing_at_once_stay_within_the_cap(tmp_path: Path) -> None:
     counts = _census([predict], tmp_path)
     _within(counts, 2)
     assert counts[2] > 0  # and two threads do compute at once
+
+
+@given(
+    st.lists(st.floats(0.0, 1e6, allow_nan=False), min_size=1, max_size=40),
+    st.integers(1, 64),
+)
+def test_apportioned_threads_follow_the_work_and_never_overfill_the_map(
+    work: list[float], n_threads: int
+) -> None:
+    shares = apportion_threads(dict(enumerate(work)), n_threads)
+    assert sorted(shares) == list(range(len(work)))
+    assert all(share >= 1 for share in shares.values())
+    total = sum(work)
+    if total <= 0:
+        assert set(shares.values()) == {1}
+        return
+    quota = {key: n_threads * w / total for key, w in enumerate(work)}
+    large = [key for key in quota if quota[key] >= 1.0]
+    small_quota = sum(q for q in quota.values() if q < 1.0)
+    # the large tasks fit in the map beside the whole seats the small ones earn together
+    assert sum(shares[key] for key in large) <= n_threads - math.floor(small_quota)
+    for key in large:  # a share's whole threads, or one more
+        assert math.floor(quota[key]) <= shares[key] <= math.floor(quota[key]) + 1
+    for key in quota:
+        if quota[key] < 1.0:
+            assert shares[key] == 1
+    for a in quota:  # more work, never fewer threads
+        for b in quota:
+            if work[a] > work[b]:
+                assert shares[a] >= shares[b]
+
+
+def test_apportioned_threads_leave_seats_to_many_small_tasks() -> None:
+    """Four tasks of a quarter of the work each on 16 threads get 4 each; one task with
+    60 % beside forty of 1 % each gets 10 of 16 (its 9.6, rounded by the larger remainder
+    of itself, 0.6, against the small ones' 6.4), and the small ones run on the other 6."""
+    assert apportion_threads({k: 1.0 for k in "abcd"}, 16) == dict.fromkeys("abcd", 4)
+    work = {"large": 60.0, **{f"small{i}": 1.0 for i in range(40)}}
+    shares = apportion_threads(work, 16)
+    assert shares["large"] == 10
+    assert {shares[f"small{i}"] for i in range(40)} == {1}
+    assert apportion_threads({"only": 5.0}, 8) == {"only": 8}

@@ -605,3 +605,30 @@ def test_tiles_get_threads_by_their_voxels_not_their_points(tmp_path: Path) -> N
         if step.name == "tile"
     )
     assert [(points, threads) for _, points, threads in tiles] == [(5_000, 4), (20_000, 1)]
+
+
+def test_small_tiles_start_beside_the_large_one_on_the_threads_their_work_earns(
+    tmp_path: Path,
+) -> None:
+    """One tile with 3.1 of 4 threads' share of the work and four small ones of 0.2 each:
+    the large tile gets 3 threads, not its share rounded up (4, all of them), and the
+    small ones start while it runs, one thread each, instead of after it."""
+    from semantic3d.core.timeline import recording
+
+    rng = np.random.default_rng(11)
+    large = rng.uniform(0.05, 3.15, (6_000, 3))
+    small = [rng.uniform(0.05, 3.15, (400, 3)) + np.array([3.2 * i, 0.0, 0.0]) for i in range(1, 5)]
+    cloud = _with_lone_points(
+        PointCloud(np.empty((0, 3)), np.empty(0, np.int32), np.empty((0, 3), np.uint8)),
+        np.concatenate([large, *small]),
+    )
+    with _every_level_by_tile(cloud, SMALL, 3.2, tmp_path) as scan, recording() as timeline:
+        assert sorted(scan.store.count(tile) for tile in scan.tiles) == [400] * 4 + [6_000]
+        rows = list(scan.map_tiles(lambda features: features.point_indices.size, n_threads=4))
+    assert sorted(rows) == [400] * 4 + [6_000]
+    tiles = [step for step in timeline.spans if step.name == "tile"]
+    (large_span,) = [step for step in tiles if step.attrs["points"] == 6_000]
+    small_spans = [step for step in tiles if step.attrs["points"] == 400]
+    assert large_span.attrs["threads"] == 3
+    assert {step.attrs["threads"] for step in small_spans} == {1}
+    assert min(step.start_s for step in small_spans) < large_span.end_s

@@ -25,7 +25,7 @@ import queue
 import sys
 import threading
 from collections import deque
-from collections.abc import Callable, Generator, Iterable, Iterator
+from collections.abc import Callable, Generator, Hashable, Iterable, Iterator, Mapping
 from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
 from contextlib import contextmanager, suppress
 from typing import TypeVar
@@ -34,6 +34,7 @@ from semantic3d.core.timeline import inside, open_span
 
 __all__ = [
     "ENVIRONMENT_VARIABLES",
+    "apportion_threads",
     "available_cores",
     "concurrent_kernels_supported",
     "current_thread_limit",
@@ -50,6 +51,7 @@ __all__ = [
 
 T = TypeVar("T")
 R = TypeVar("R")
+K = TypeVar("K", bound=Hashable)
 
 ENVIRONMENT_VARIABLES = ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS")
 """Variables that cap the budget when no limit was set (the smallest positive one wins)."""
@@ -426,6 +428,39 @@ def serial_section() -> Iterator[None]:
         held[1] = 1 + tokens.take_up_to(count - 1)
         _set_numba_threads_here(held[1])
         _task.budget = held[1]
+
+
+def apportion_threads(work: Mapping[K, float], n_threads: int) -> dict[K, int]:
+    """Threads for each task of a map of ``n_threads``, by its share of the ``work``.
+
+    A task whose share ``n_threads * work / total`` is a thread or more is a *large* task;
+    the others are *small* and get one thread each. Seats are given by largest remainders
+    (Hamilton's method) among the large tasks and the small ones taken as one group: each
+    large task gets the whole threads of its share, the seats left go to the largest
+    fractions, and the group's seats are what the large tasks leave. So the large tasks
+    never take more than ``n_threads`` together (rounding each share up could, and the
+    last large task would wait for another to end), and small tasks with a thread's
+    worth of work between them start beside the large ones rather than after them, on
+    the seats their work earns, instead of all at the end: there, many small tasks at
+    once mostly wait for each other (for the interpreter between their short kernels).
+    """
+    n = max(1, int(n_threads))
+    total = float(sum(max(0.0, float(w)) for w in work.values()))
+    if total <= 0.0:
+        return {key: 1 for key in work}
+    quota = {key: n * max(0.0, float(w)) / total for key, w in work.items()}
+    large = [key for key in work if quota[key] >= 1.0]
+    group = sum(q for key, q in quota.items() if q < 1.0)
+    seats = {key: int(quota[key]) for key in large}
+    group_seats = int(group)
+    # the seats left, to the largest remainders (ties: the larger task, then input order)
+    remainders = [(quota[key] - seats[key], quota[key], -at, key) for at, key in enumerate(large)]
+    remainders.append((group - group_seats, group, -len(large), None))
+    left = max(0, n - sum(seats.values()) - group_seats)
+    for _, _, _, key in sorted(remainders, key=lambda r: r[:3], reverse=True)[:left]:
+        if key is not None:
+            seats[key] += 1
+    return {key: seats.get(key, 1) for key in work}
 
 
 def enclosing_map_threads() -> int:

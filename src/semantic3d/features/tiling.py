@@ -44,6 +44,7 @@ from numpy.typing import ArrayLike, NDArray
 from semantic3d.core.errors import ShapeError
 from semantic3d.core.pointcloud import PointCloud
 from semantic3d.core.threads import (
+    apportion_threads,
     enclosing_map_threads,
     iter_ahead,
     map_in_threads,
@@ -596,19 +597,22 @@ class TiledScan:
         :mod:`semantic3d.core.threads`), the most work first, results as they finish (at
         most twice ``n_threads`` held at once). Inside a tile, numba's kernels get a share
         of the threads in proportion to the tile's work (:meth:`_work`: its voxels more
-        than its points), so a scan whose points crowd into a few tiles near the scanner
-        still uses every core, and the tiles around them, with fewer points in more
-        voxels, are not left on too few threads to the end.
+        than its points; :func:`~semantic3d.core.threads.apportion_threads`), so a scan
+        whose points crowd into a few tiles near the scanner still uses every core, and
+        the tiles around them, with fewer points in more voxels, are not left on too few
+        threads to the end. Tiles of less than a thread's share run one thread each,
+        beside the large tiles on the threads their work earns together, not all after
+        them.
         """
         wanted = None if select is None else np.unique(np.asarray(select, dtype=np.int64))
         n_threads = thread_budget() if n_threads is None else max(1, int(n_threads))
         self._compute_shared()
         work = {tile: self._work(tile) for tile in self.tiles}
-        total = max(1.0, sum(work.values()))
         order = sorted(self.tiles, key=lambda tile: (-work[tile], tile))
+        shares = apportion_threads(work, n_threads)
 
         def threads_of(tile: Tile) -> int:
-            return math.ceil(n_threads * work[tile] / total)
+            return shares[tile]
 
         def task(tile: Tile) -> tuple[bool, R | None]:
             with span(
