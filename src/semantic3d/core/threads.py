@@ -450,11 +450,13 @@ def apportion_threads(work: Mapping[K, float], n_threads: int) -> dict[K, int]:
         return {key: 1 for key in work}
     quota = {key: n * max(0.0, float(w)) / total for key, w in work.items()}
     large = [key for key in work if quota[key] >= 1.0]
-    group = sum(q for key, q in quota.items() if q < 1.0)
+    group = float(sum(q for q in quota.values() if q < 1.0))
     seats = {key: int(quota[key]) for key in large}
     group_seats = int(group)
     # the seats left, to the largest remainders (ties: the larger task, then input order)
-    remainders = [(quota[key] - seats[key], quota[key], -at, key) for at, key in enumerate(large)]
+    remainders: list[tuple[float, float, int, K | None]] = [
+        (quota[key] - seats[key], quota[key], -at, key) for at, key in enumerate(large)
+    ]
     remainders.append((group - group_seats, group, -len(large), None))
     left = max(0, n - sum(seats.values()) - group_seats)
     for _, _, _, key in sorted(remainders, key=lambda r: r[:3], reverse=True)[:left]:
