@@ -425,10 +425,15 @@ def test_apportioned_threads_follow_the_work_and_never_overfill_the_map(
     quota = {key: n_threads * w / total for key, w in enumerate(work)}
     large = [key for key in quota if quota[key] >= 1.0]
     small_quota = sum(q for q in quota.values() if q < 1.0)
-    # the large tasks fit in the map beside the whole seats the small ones earn together
-    assert sum(shares[key] for key in large) <= n_threads - math.floor(small_quota)
+    taken = sum(shares[key] for key in large)
+    if small_quota >= 1.0:  # the small ones keep the whole seats of their summed share
+        assert n_threads - taken in (math.floor(small_quota), math.floor(small_quota) + 1)
+        scale = 1.0
+    else:  # they follow the large ones, which share every seat
+        assert taken == (n_threads if large else 0)
+        scale = n_threads / (n_threads - small_quota)
     for key in large:  # a share's whole threads, or one more
-        assert math.floor(quota[key]) <= shares[key] <= math.floor(quota[key]) + 1
+        assert math.floor(quota[key]) <= shares[key] <= math.floor(quota[key] * scale) + 1
     for key in quota:
         if quota[key] < 1.0:
             assert shares[key] == 1
@@ -441,10 +446,17 @@ def test_apportioned_threads_follow_the_work_and_never_overfill_the_map(
 def test_apportioned_threads_leave_seats_to_many_small_tasks() -> None:
     """Four tasks of a quarter of the work each on 16 threads get 4 each; one task with
     60 % beside forty of 1 % each gets 10 of 16 (its 9.6, rounded by the larger remainder
-    of itself, 0.6, against the small ones' 6.4), and the small ones run on the other 6."""
+    of itself, 0.6, against the small ones' 6.4), and the small ones run on the other 6;
+    a task with 60 % on 2 threads, beside small ones of less than a thread together, gets
+    both (they follow it)."""
     assert apportion_threads({k: 1.0 for k in "abcd"}, 16) == dict.fromkeys("abcd", 4)
     work = {"large": 60.0, **{f"small{i}": 1.0 for i in range(40)}}
     shares = apportion_threads(work, 16)
     assert shares["large"] == 10
     assert {shares[f"small{i}"] for i in range(40)} == {1}
     assert apportion_threads({"only": 5.0}, 8) == {"only": 8}
+    assert apportion_threads({"large": 60.0, "a": 20.0, "b": 20.0}, 2) == {
+        "large": 2,
+        "a": 1,
+        "b": 1,
+    }

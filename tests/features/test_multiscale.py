@@ -607,28 +607,36 @@ def test_tiles_get_threads_by_their_voxels_not_their_points(tmp_path: Path) -> N
     assert [(points, threads) for _, points, threads in tiles] == [(5_000, 4), (20_000, 1)]
 
 
-def test_small_tiles_start_beside_the_large_one_on_the_threads_their_work_earns(
+def test_small_tiles_start_beside_the_large_ones_on_the_threads_their_work_earns(
     tmp_path: Path,
 ) -> None:
-    """One tile with 3.1 of 4 threads' share of the work and four small ones of 0.2 each:
-    the large tile gets 3 threads, not its share rounded up (4, all of them), and the
-    small ones start while it runs, one thread each, instead of after it."""
+    """Two tiles with 1.66 and 1.13 of 4 threads' share of the work and ten small ones
+    with 1.2 together: the large tiles get 2 and 1 threads, not their shares rounded up
+    (2 and 2, all of them), and the small ones start while the large ones run, one thread
+    each, instead of after them."""
     from semantic3d.core.timeline import recording
 
     rng = np.random.default_rng(11)
-    large = rng.uniform(0.05, 3.15, (6_000, 3))
-    small = [rng.uniform(0.05, 3.15, (400, 3)) + np.array([3.2 * i, 0.0, 0.0]) for i in range(1, 5)]
+    first = rng.uniform(0.05, 3.15, (6_000, 3))
+    second = rng.uniform(0.05, 3.15, (4_000, 3)) + np.array([0.0, 3.2, 0.0])
+    small = [
+        rng.uniform(0.05, 3.15, (400, 3)) + np.array([3.2 * i, 0.0, 0.0]) for i in range(1, 11)
+    ]
     cloud = _with_lone_points(
         PointCloud(np.empty((0, 3)), np.empty(0, np.int32), np.empty((0, 3), np.uint8)),
-        np.concatenate([large, *small]),
+        np.concatenate([first, second, *small]),
     )
+    counts = [400] * 10 + [4_000, 6_000]
     with _every_level_by_tile(cloud, SMALL, 3.2, tmp_path) as scan, recording() as timeline:
-        assert sorted(scan.store.count(tile) for tile in scan.tiles) == [400] * 4 + [6_000]
+        assert sorted(scan.store.count(tile) for tile in scan.tiles) == counts
         rows = list(scan.map_tiles(lambda features: features.point_indices.size, n_threads=4))
-    assert sorted(rows) == [400] * 4 + [6_000]
+    assert sorted(rows) == counts
     tiles = [step for step in timeline.spans if step.name == "tile"]
-    (large_span,) = [step for step in tiles if step.attrs["points"] == 6_000]
+    large = {step.attrs["points"]: step for step in tiles if step.attrs["points"] > 400}
     small_spans = [step for step in tiles if step.attrs["points"] == 400]
-    assert large_span.attrs["threads"] == 3
+    assert {points: step.attrs["threads"] for points, step in large.items()} == {
+        6_000: 2,
+        4_000: 1,
+    }
     assert {step.attrs["threads"] for step in small_spans} == {1}
-    assert min(step.start_s for step in small_spans) < large_span.end_s
+    assert min(step.start_s for step in small_spans) < min(step.end_s for step in large.values())

@@ -434,15 +434,16 @@ def apportion_threads(work: Mapping[K, float], n_threads: int) -> dict[K, int]:
     """Threads for each task of a map of ``n_threads``, by its share of the ``work``.
 
     A task whose share ``n_threads * work / total`` is a thread or more is a *large* task;
-    the others are *small* and get one thread each. Seats are given by largest remainders
-    (Hamilton's method) among the large tasks and the small ones taken as one group: each
-    large task gets the whole threads of its share, the seats left go to the largest
-    fractions, and the group's seats are what the large tasks leave. So the large tasks
-    never take more than ``n_threads`` together (rounding each share up could, and the
-    last large task would wait for another to end), and small tasks with a thread's
-    worth of work between them start beside the large ones rather than after them, on
-    the seats their work earns, instead of all at the end: there, many small tasks at
-    once mostly wait for each other (for the interpreter between their short kernels).
+    the others are *small* and get one thread each. Seats go by largest remainders
+    (Hamilton's method): each large task gets the whole threads of its share, the seats
+    left go to the largest fractions. The small tasks are one more party when their shares
+    add up to a thread or more: they then keep the seats their work earns together, and
+    start beside the large tasks instead of all at the end, where many small tasks at once
+    mostly wait for each other (for the interpreter between their short kernels). With
+    less than a thread's work between them, the large tasks share every seat and the
+    small ones follow. Either way the large tasks never take more than ``n_threads``
+    together (rounding each share up could, and the last large task would wait for
+    another to end).
     """
     n = max(1, int(n_threads))
     total = float(sum(max(0.0, float(w)) for w in work.values()))
@@ -451,13 +452,18 @@ def apportion_threads(work: Mapping[K, float], n_threads: int) -> dict[K, int]:
     quota = {key: n * max(0.0, float(w)) / total for key, w in work.items()}
     large = [key for key in work if quota[key] >= 1.0]
     group = float(sum(q for q in quota.values() if q < 1.0))
+    if group < 1.0:  # the small tasks follow the large ones, which share every seat
+        scale = n / (n - group)
+        quota.update({key: quota[key] * scale for key in large})
+        group = 0.0
     seats = {key: int(quota[key]) for key in large}
     group_seats = int(group)
     # the seats left, to the largest remainders (ties: the larger task, then input order)
     remainders: list[tuple[float, float, int, K | None]] = [
         (quota[key] - seats[key], quota[key], -at, key) for at, key in enumerate(large)
     ]
-    remainders.append((group - group_seats, group, -len(large), None))
+    if group:
+        remainders.append((group - group_seats, group, -len(large), None))
     left = max(0, n - sum(seats.values()) - group_seats)
     for _, _, _, key in sorted(remainders, key=lambda r: r[:3], reverse=True)[:left]:
         if key is not None:
