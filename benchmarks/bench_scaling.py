@@ -37,8 +37,9 @@ no transparent huge pages: the first line says the kernel's mode), the mean numb
 process's threads running or ready to run while it worked (sampled every 2 ms: a
 load-independent view of how parallel it was), the peer's rate at the same count, the
 floor where a path must read files (``read_labels``, ``evaluate``: the same files read on
-the same threads in 32 MB positioned reads, nothing parsed; items per second at that
-speed, and the path's rate over it) and the SHA-256 of what ``simulate`` and ``predict``
+the same threads as the readers read them, 512 KiB positioned reads from compiled code,
+nothing parsed, and for ``read_labels`` its result, a byte a label, written once into new
+memory on those threads; items per second at that speed, and the path's rate over it) and the SHA-256 of what ``simulate`` and ``predict``
 wrote (the same at every count, or a line says they differ). Per path, the Amdahl serial
 fraction ``s`` is fitted to the speed-ups over 1 thread (least squares on
 ``1/S(n) = s + (1 - s)/n``), with the speed-up it predicts on 16 threads; with only 1 and
@@ -236,33 +237,39 @@ def _digest(paths: list[Path]) -> str:
 
 
 class _ReadFloor:
-    """The files' bytes read on ``n_threads`` threads in 32 MB positioned reads into each
-    thread's buffer, nothing parsed: the floor of a path that must read them. The threads
-    and their buffers outlive a call (the first call makes them), so a timed call reads
-    and does nothing else. A call returns ``items`` (what the path counts for the bytes)."""
+    """The files' bytes read on ``n_threads`` threads as the package's readers read them
+    (compiled positioned reads of 512 KiB blocks, each thread a run of blocks into its own
+    buffer, which stays in cache), nothing parsed, and, with ``result_bytes``, a fresh
+    array of that many bytes written once on the same threads (each a contiguous slice,
+    its pages first touched there): the floor of a path that must read the files and hand
+    back its result in new memory. A call returns ``items`` (what the path counts for the
+    bytes)."""
 
-    BLOCK = 1 << 25
+    BLOCK = 1 << 19
 
-    def __init__(self, paths: list[Path], n_threads: int, items: int) -> None:
-        from concurrent.futures import ThreadPoolExecutor
-
+    def __init__(
+        self, paths: list[Path], n_threads: int, items: int, result_bytes: int = 0
+    ) -> None:
         self.items = items
-        sizes = {path: path.stat().st_size for path in paths}
-        self.size = sum(sizes.values())
-        self.jobs = [(p, at) for p, size in sizes.items() for at in range(0, size, self.BLOCK)]
-        self.pool = ThreadPoolExecutor(max_workers=n_threads)
-        self.local = threading.local()
-
-    def _read(self, job: tuple[Path, int]) -> int:
-        buffer = getattr(self.local, "buffer", None)
-        if buffer is None:
-            buffer = self.local.buffer = bytearray(self.BLOCK)
-        with job[0].open("rb", buffering=0) as stream:
-            return os.preadv(stream.fileno(), [buffer], job[1])
+        self.n_threads = n_threads
+        self.result_bytes = result_bytes
+        self.sizes = {path: path.stat().st_size for path in paths}
 
     def __call__(self) -> int:
-        if sum(self.pool.map(self._read, self.jobs)) != self.size:
-            raise SystemExit("the floor read fewer bytes than the files hold")
+        import numpy as np
+
+        import _ceilings
+
+        for path, size in self.sizes.items():
+            fd = os.open(path, os.O_RDONLY)
+            try:
+                read = _ceilings.read_file(fd, size, self.BLOCK, self.n_threads)
+            finally:
+                os.close(fd)
+            if read != size:
+                raise SystemExit(f"the floor read {read} of the {size} bytes of {path}")
+        if self.result_bytes:
+            _ceilings.fill(np.empty(self.result_bytes, np.uint8), self.n_threads)
         return self.items
 
 
@@ -334,7 +341,8 @@ def child(job: dict[str, Any]) -> dict[str, Any]:
 
         run_small = None  # a small file is parsed by numpy: the warm-up reads the large one
         peer = lambda: _pyarrow_rows(labels, n, ["label"])  # noqa: E731
-        floor = _ReadFloor([labels], n, labels.stat().st_size // 2)
+        items = labels.stat().st_size // 2  # one result byte a label
+        floor = _ReadFloor([labels], n, items, result_bytes=items)
     elif path == "simulate":
         from semantic3d.datasets.simulator import simulate
 
