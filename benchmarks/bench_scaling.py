@@ -30,30 +30,31 @@ files, in the same run:
   scan's labels 4 times over, 16 on 16 cores: ground truth and a prediction of it), label
   pairs per second.
 
-Each row gives the rate (items per second, wall clock), CPU seconds (and their ratio to
-the peer's, which a loaded machine disturbs less than wall time), the system CPU seconds
-and minor page faults of the timed run (each 4 KiB of fresh memory is one where numpy gets
-no transparent huge pages: the first line says the kernel's mode), the mean number of the
+Each row gives the rate (items per second, wall clock), CPU seconds (and their ratio to the
+peer's, which a loaded machine disturbs less than wall time), the system CPU seconds and
+minor page faults of the timed run (each 4 KiB of fresh memory is one where numpy gets no
+transparent huge pages: the first line says the kernel's mode), the mean number of the
 process's threads running or ready to run while it worked (sampled every 2 ms: a
-load-independent view of how parallel it was), the peer's rate at the same count, the
-floor where a path must read files (``read_labels``, ``evaluate``: the same files read on
-the same threads as the readers read them, 512 KiB positioned reads from compiled code,
-nothing parsed, and for ``read_labels`` its result, a byte a label, written once into new
-memory on those threads; items per second at that speed, and the path's rate over it) and the SHA-256 of what ``simulate`` and ``predict``
-wrote (the same at every count, or a line says they differ). Per path, the Amdahl serial
-fraction ``s`` is fitted to the speed-ups over 1 thread (least squares on
-``1/S(n) = s + (1 - s)/n``), with the speed-up it predicts on 16 threads; with only 1 and
-2 threads (a 2-core machine) the fit is exact and the 16-thread figure a prediction. ``s``
-is also estimated from the 2-thread run's thread samples (time with one thread running
-over the time one thread would take), which a loaded machine disturbs less than wall
-time. The load average is printed beside every row: compare rows of one run.
-``--where`` also names the code that runs while at most a quarter of the threads do, at
-the largest thread count: the serial parts to remove next. ``--timeline`` records one more
-``predict`` run at the largest count on a timeline (:mod:`semantic3d.core.timeline`: the
-spill, each tile's pyramid, features and the parts of their levels, forest and cut, every
-square of the cuts, the labels written) and prints what ran after the last tile started:
-which tiles' chains of steps the other threads waited for (with the threads of a tile's
-parts at their start and end). The spans go to ``bench_scaling_timeline.json``.
+load-independent view of how parallel it was), the peer's rate at the same count, the floor
+where a path must read files (``read_labels``, ``evaluate``: the same files read on the
+same threads as the readers read them, 512 KiB positioned reads from compiled code, nothing
+parsed, and for ``read_labels`` its result, a byte a label, written once into new memory on
+those threads; items per second at that speed, and the path's rate over it) and the SHA-256
+of what ``simulate`` and ``predict`` wrote (the same at every count, or a line says they
+differ). Per path, the Amdahl serial fraction ``s`` is fitted to the speed-ups over 1
+thread (least squares on ``1/S(n) = s + (1 - s)/n``), with the speed-up it predicts on 16
+threads; with only 1 and 2 threads (a 2-core machine) the fit is exact and the 16-thread
+figure a prediction. ``s`` is also estimated from the 2-thread run's thread samples (time
+with one thread running over the time one thread would take), which a loaded machine
+disturbs less than wall time. The load average is printed beside every row: compare rows of
+one run. ``--where`` also names the code that runs while at most a quarter of the threads
+do, at the largest thread count: the serial parts to remove next. ``--timeline`` records
+one more ``predict`` run at the largest count on a timeline
+(:mod:`semantic3d.core.timeline`: the spill, each tile's pyramid, features and the parts of
+their levels, forest and cut, every square of the cuts, the labels written) and prints what
+ran after the last tile started: which tiles' chains of steps the other threads waited for
+(with the threads of a tile's parts at their start and end). The spans go to
+``bench_scaling_timeline.json``.
 Writes ``benchmarks/out/bench_scaling.json``.
 """
 

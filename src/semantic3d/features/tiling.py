@@ -997,15 +997,15 @@ class TiledScan:
         boxes then grow until they hold the whole level)."""
         config = self.config
         k = config.k_neighbours
+        if self._level_sizes[number] < k:  # no box ever holds k
+            return np.full(queries.shape[0], box[1] - box[0] + box[3] - box[2])
         wide = np.array(box, dtype=np.float64)
-        while True:
+        while True:  # ends: a box over every tile holds the whole level
             grow = 0.5 * max(wide[1] - wide[0], wide[3] - wide[2])
             wide += np.array([-grow, grow, -grow, grow])
             xyz, keys, _ = self._gather(number, wide)
             if xyz.shape[0] >= k:
                 break
-            if (wide[[0, 2]] <= self._tile_low).all() and (wide[[1, 3]] >= self._tile_high).all():
-                return np.full(queries.shape[0], box[1] - box[0] + box[3] - box[2])
         if queries.shape[0] * xyz.shape[0] <= _BRUTE_FORCE_PAIRS:
             kth = np.sqrt(kth_squared_distances(xyz, queries, k))
         else:  # many queries (per-point rows): a tree over the grown box
