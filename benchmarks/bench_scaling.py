@@ -27,8 +27,9 @@ files, in the same run:
   caches; a path's speed-up is read against theirs (the last table: from 2 threads to the
   most, as a share of the compute ceiling's);
 - ``evaluate``: :func:`semantic3d.evaluation.evaluate_submission` of 8 scans (links to the
-  scan's labels 4 times over, 16 on 16 cores: ground truth and a prediction of it), label
-  pairs per second.
+  scan's labels 4 times over, 16 on 16 cores, and to a prediction of them wrong in runs of
+  ~100 lines, a tenth of them), label pairs per second; peer: both files of each scan read
+  by ``pyarrow.csv.read_csv`` (N threads) and counted with ``numpy.bincount``.
 
 Each row gives the rate (items per second, wall clock), CPU seconds (and their ratio to the
 peer's, which a loaded machine disturbs less than wall time), the system CPU seconds and
@@ -92,8 +93,13 @@ CEILINGS = ("compute", "bandwidth")
 SPIN_STEPS = 1 << 27  # multiply-add rounds a thread: about 0.3 s
 TRIAD_BYTES = 3 << 29  # the three arrays of the bandwidth ceiling (1.5 GiB), beyond any cache
 TRIAD_ROUNDS = 8
-PEERS = {"iter_points": "pyarrow.csv", "read_labels": "pyarrow.csv"}
+PEERS = {
+    "iter_points": "pyarrow.csv",
+    "read_labels": "pyarrow.csv",
+    "evaluate": "pyarrow.csv + numpy.bincount",
+}
 N_EVALUATED_SCANS = 8
+PREDICTION_WRONG = 0.1  # the evaluated prediction's share of runs of wrong labels
 WARM_POINTS = 1_000_000  # the scan labelled once before the timed runs (kernels compiled)
 WHERE_TOP = 12
 MIN_TIMED_S = 1.5
@@ -403,9 +409,13 @@ def child(job: dict[str, Any]) -> dict[str, Any]:
             return copies * N_EVALUATED_SCANS * int(job["scan_points"])  # label pairs read
 
         run_small = None
-        peer = None
-        pairs = sorted(truth.glob("*.labels")) + sorted(predicted.glob("*.labels"))
-        floor = _ReadFloor(pairs, n, copies * N_EVALUATED_SCANS * int(job["scan_points"]))
+        files = [(path, predicted / path.name) for path in sorted(truth.glob("*.labels"))]
+        peer = lambda: _pyarrow_confusion(files, n, 8)  # noqa: E731
+        floor = _ReadFloor(
+            [path for pair in files for path in pair],
+            n,
+            copies * N_EVALUATED_SCANS * int(job["scan_points"]),
+        )
     else:
         raise SystemExit(f"unknown path {path}")
     if run_small is not None:
@@ -558,20 +568,65 @@ def _tiled_model(training: Path, work: Path, warm_points: int) -> Path:
 
 def _label_files(truth: Path, work: Path, copies: int) -> dict[str, Any]:
     """One file of every evaluated scan's labels for ``read_labels``, and the truth and
-    submission folders ``evaluate`` compares (hard links of one file of ``copies``
-    copies of the scan's labels)."""
+    submission folders ``evaluate`` compares: hard links of one file of ``copies`` copies
+    of the scan's labels, and of one of a prediction of them (:func:`_prediction`)."""
     (work / "labels").mkdir()
-    labels, per_scan = work / "labels" / "many.labels", work / "labels" / "scan.labels"
+    labels = work / "labels" / "many.labels"
     text = truth.read_bytes()
-    for path, times in ((labels, copies * N_EVALUATED_SCANS), (per_scan, copies)):
-        with path.open("wb") as stream:
-            for _ in range(times):
-                stream.write(text)
-    for folder in ("truth", "submission"):
+    per_scan = {"truth": text, "submission": _prediction(text)}
+    with labels.open("wb") as stream:
+        for _ in range(copies * N_EVALUATED_SCANS):
+            stream.write(text)
+    for folder, scan_text in per_scan.items():
+        one = work / "labels" / f"{folder}.labels"
+        with one.open("wb") as stream:
+            for _ in range(copies):
+                stream.write(scan_text)
         (work / folder).mkdir()
         for number in range(N_EVALUATED_SCANS):
-            os.link(per_scan, work / folder / f"scan{number}.labels")
+            os.link(one, work / folder / f"scan{number}.labels")
     return {"label_copies": copies, "labels": str(labels)}
+
+
+def _prediction(truth: bytes) -> bytes:
+    """A prediction of ``d\\n`` ground truth as a classifier's differs from it: wrong in
+    runs (a tenth of the lines, in runs of ~100 lines: a wrong object or surface), every
+    unlabelled point given a class; the same bytes every run."""
+    import numpy as np
+
+    values = np.frombuffer(truth, np.uint8)[0::2] - ord("0")
+    rng = np.random.default_rng(11)
+    runs = values.size // 50 + 2  # twice the lines, on average
+    wrong = np.repeat(rng.random(runs) < PREDICTION_WRONG, rng.geometric(0.01, runs))
+    predicted = np.where(wrong[: values.size], values % 8 + 1, np.maximum(values, 1))
+    text = np.empty(2 * values.size, np.uint8)
+    text[0::2] = predicted + ord("0")
+    text[1::2] = ord("\n")
+    return text.tobytes()
+
+
+def _pyarrow_confusion(pairs: list[tuple[Path, Path]], n_threads: int, n_classes: int) -> int:
+    """The confusion matrix as a user would count it without the package: each pair of
+    files read by ``pyarrow.csv`` (its block reader on ``n_threads`` threads), the values
+    counted with ``numpy.bincount``. Returns the pairs counted."""
+    import numpy as np
+    import pyarrow as pa
+    import pyarrow.csv as pacsv
+
+    pa.set_cpu_count(n_threads)
+    pa.set_io_thread_count(n_threads)
+    read = pacsv.ReadOptions(column_names=["label"], use_threads=True)
+    size = n_classes + 1
+    table = np.zeros(size * size, np.int64)
+    for truth, predicted in pairs:
+        t, p = (
+            pacsv.read_csv(path, read_options=read).column(0).to_numpy()
+            for path in (truth, predicted)
+        )
+        if t.size != p.size:
+            raise SystemExit(f"{truth} and {predicted} differ in length")
+        table += np.bincount(t * size + p, minlength=size * size)
+    return int(table.sum())
 
 
 def _open_at(spans: list[dict[str, Any]], t: float) -> list[dict[str, Any]]:

@@ -43,7 +43,7 @@ def _text(values: np.ndarray) -> bytearray:
             st.sampled_from([1, 5, 32, 40, 300]),  # lines spoilt alike from that line on
         ),
     ),
-    run_length=st.sampled_from([1, 3, 32, 33, 64, 1000, 10_000]),
+    run_length=st.sampled_from([1, 3, 6, 8, 32, 33, 64, 1000, 10_000]),
     offsets=st.tuples(st.integers(0, 3), st.integers(0, 3)),
     n_threads=st.integers(1, 5),
     seed=st.integers(0, 2**16),
@@ -319,3 +319,29 @@ def test_the_counter_gives_the_same_numbers_on_any_number_of_threads(tmp_path: P
 
 def test_the_retry_step_passes_a_whole_counter_window() -> None:
     assert evaluation._RETRY_PAIRS >= WINDOW
+
+
+def test_a_bad_line_anywhere_in_a_window_spoils_it_whatever_the_runs_around_it() -> None:
+    # the counter checks a pair only where it differs from the one before (or, in a span
+    # of many changes, every pair): a bad line at any place, alone or starting a run of
+    # bad lines to the window's end, behind busy spans and long runs alike
+    rng = np.random.default_rng(5)
+    truth = np.repeat(rng.integers(1, 9, WINDOW), rng.integers(1, 200, WINDOW))[:WINDOW]
+    truth[:700] = np.arange(700) % 7 + 1  # a busy start: a change every line
+    truth[2000:2300] = rng.integers(1, 9, 300)
+    pred = np.maximum(truth, 1)
+    clean = np.frombuffer(bytes(_text(truth)), np.uint8)
+    reference = np.zeros((9, 9), np.int64)
+    np.add.at(reference, (truth, pred), 1)
+    table = np.zeros((9, 9), np.int64)
+    pred_text = np.frombuffer(bytes(_text(pred)), np.uint8)
+    assert kernel.count_digit_pairs(clean, 0, pred_text, 0, WINDOW, 0, 8, 1, 8, table, 1) == WINDOW
+    np.testing.assert_array_equal(table, reference)
+    for line in range(WINDOW):
+        for to_the_end in (False, True):
+            spoilt = clean.copy()
+            spoilt[2 * line : 2 * WINDOW if to_the_end else 2 * line + 1 : 2] = ord("9")
+            table = np.zeros((9, 9), np.int64)
+            got = kernel.count_digit_pairs(spoilt, 0, pred_text, 0, WINDOW, 0, 8, 1, 8, table, 1)
+            assert got == 0, (line, to_the_end)
+            assert not table.any()  # the window taken back

@@ -41,10 +41,11 @@ from typing import Any
 import numba as nb
 import numpy as np
 from llvmlite import ir
-from numba.core import cgutils, types
+from numba.core import types
 from numba.extending import intrinsic
 
 from semantic3d.core.atomic import take_next
+from semantic3d.core.bits import trailing_zeros
 from semantic3d.io._page_advice import DROP_ADVICE, advise
 from semantic3d.io._point_text import (  # problem codes: one definition for both parsers
     BAD_NUMBER,
@@ -122,26 +123,8 @@ def _byte_intrinsic(typingctx, array, index):  # type: ignore[no-untyped-def]  #
     return signature, codegen
 
 
-def _trailing_zeros_intrinsic(typingctx, value):  # type: ignore[no-untyped-def]  # pragma: no cover
-    """Count of trailing zero bits of a uint64 (64 for zero): one instruction."""
-    if not isinstance(value, types.Integer):
-        return None
-    signature = types.uint64(value)
-
-    def codegen(context, builder, sig, args):  # type: ignore[no-untyped-def]
-        word = context.cast(builder, args[0], sig.args[0], types.uint64)
-        i64 = ir.IntType(64)
-        function = cgutils.get_or_insert_function(
-            builder.module, ir.FunctionType(i64, [i64, ir.IntType(1)]), "llvm.cttz.i64"
-        )
-        return builder.call(function, [word, ir.Constant(ir.IntType(1), 0)])
-
-    return signature, codegen
-
-
 _load_u64: Any = intrinsic(_load_u64_intrinsic)
 _byte: Any = intrinsic(_byte_intrinsic)
-_trailing_zeros: Any = intrinsic(_trailing_zeros_intrinsic)
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
@@ -159,7 +142,7 @@ def _digits_of(word: Any) -> tuple[Any, Any]:  # pragma: no cover - compiled
     """
     x = word ^ _ZEROS
     non_digit = (((x & _LOW7) + _PLUS_118) | x) & _HIGH_BITS
-    count = _trailing_zeros(non_digit) >> np.uint64(3)
+    count = trailing_zeros(non_digit) >> np.uint64(3)
     # Shift the digits to the top (the bytes past them fall out; zeros enter as leading
     # zeros), then combine pairs, quads and octets: 8 digits in three multiplies.
     shift = (np.uint64(63) - (count << np.uint64(3))) & _U63
