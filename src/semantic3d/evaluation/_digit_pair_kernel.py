@@ -346,9 +346,7 @@ def count_file_pairs(
     truth_words = truth_text.view(np.uint16)
     pred_words = pred_text.view(np.uint16)
     for k in range(tail):
-        truth_value = np.uint16(truth_words[k] - np.uint16(_PAIR_ZERO))
-        pred_value = np.uint16(pred_words[k] - np.uint16(_PAIR_ZERO))
-        if np.uint16(truth_value - t_low) > t_span or np.uint16(pred_value - p_low) > p_span:
+        if not _in_range(truth_words[k], pred_words[k], t_low, t_span, p_low, p_span):
             return False
     for k in range(tail):
         table[truth_words[k] & 15, pred_words[k] & 15] += 1
