@@ -51,6 +51,7 @@ def _unary_count(name: str) -> Any:
 
         return types.uint64(value), codegen
 
+    typer.__name__ = typer.__qualname__ = f"_{name}"  # the intrinsic's name in numba's registry
     return intrinsic(typer)
 
 
