@@ -20,6 +20,10 @@ files, in the same run:
 - ``simulate``: :func:`semantic3d.datasets.simulator.simulate` of that scan (text written);
 - ``predict``: the covariance baseline on that one scan, tiled whatever its size
   (``predict_scan``, labels and run record written), with the model trained below;
+- ``predict_data``: the covariance baseline on every scan of the training folder (below)
+  at once, as ``baseline covariance predict --data`` labels them
+  (:func:`semantic3d.baselines.common.prediction.predict_scans`, a scan per 4 threads at a
+  time, labels and run records written), with a model trained on that folder;
 - ``train``: :func:`semantic3d.baselines.covariance.training.train_covariance_model` on the
   Oakland scans (``--oakland``; three simulated scans when absent), default configuration;
 - ``compute`` and ``bandwidth``: the machine's own ceilings (``_ceilings.py``): arithmetic
@@ -85,6 +89,7 @@ PATHS = (
     "read_labels",
     "simulate",
     "predict",
+    "predict_data",
     "train",
     "evaluate",
 )
@@ -379,6 +384,24 @@ def child(job: dict[str, Any]) -> dict[str, Any]:
             return predict_scan(model, small, out_path=out, workdir=work, overwrite=True).n_points
 
         peer = None
+    elif path == "predict_data":
+        from semantic3d.baselines.common.prediction import predict_scans, scans_at_once
+        from semantic3d.baselines.common.submission import find_scans_to_label
+        from semantic3d.baselines.covariance.persistence import load_model
+
+        model = load_model(job["data_model"])
+        scans = find_scans_to_label(Path(job["training"]))
+
+        def run() -> int:
+            out = work / f"predict_data{n}"
+            made = predict_scans(
+                model, scans, out, overwrite=True, parallel_scans=scans_at_once(len(scans))
+            )
+            outputs.extend(out / scan.output_name for scan in scans)
+            return made.n_points
+
+        run_small = None
+        peer = None
     elif path == "train":
         from semantic3d.baselines.covariance.config import CovarianceConfig
         from semantic3d.baselines.covariance.training import (
@@ -513,8 +536,10 @@ def _prepare(args: argparse.Namespace, work: Path) -> dict[str, Any]:
 
     paths = set(args.paths)
     shared: dict[str, Any] = {"points": args.points, "work": str(work)}
-    if paths & {"predict", "train"}:
+    if paths & {"predict", "predict_data", "train"}:
         shared["training"] = str(_training_folder(Path(args.oakland), work))
+    if "predict_data" in paths:
+        shared["data_model"] = str(_data_model(Path(shared["training"]), work))
     if not paths & SCAN_READERS:
         return shared
     scan = simulate("street", out=work / "scan", n_points=args.points, seed=1).scans[0]
@@ -564,6 +589,21 @@ def _tiled_model(training: Path, work: Path, warm_points: int) -> Path:
     save_model(tiled, work / "model.s3dm")
     _compile_prediction(tiled, work, warm_points)
     return work / "model.s3dm"
+
+
+def _data_model(training: Path, work: Path) -> Path:
+    """A model trained on the training folder with the default configuration, for
+    labelling that folder's scans (``predict_data``); the path of its file."""
+    from semantic3d.baselines.covariance.config import CovarianceConfig
+    from semantic3d.baselines.covariance.persistence import save_model
+    from semantic3d.baselines.covariance.training import (
+        find_labelled_scans,
+        train_covariance_model,
+    )
+
+    model = train_covariance_model(find_labelled_scans(training), config=CovarianceConfig())
+    save_model(model, work / "data_model.s3dm")
+    return work / "data_model.s3dm"
 
 
 def _label_files(truth: Path, work: Path, copies: int) -> dict[str, Any]:
