@@ -44,9 +44,11 @@ load-independent view of how parallel it was), the peer's rate at the same count
 where a path must read files (``read_labels``, ``evaluate``: the same files read on the
 same threads as the readers read them, 512 KiB positioned reads from compiled code, nothing
 parsed, and for ``read_labels`` its result, a byte a label, written once into new memory on
-those threads; items per second at that speed, and the path's rate over it) and the SHA-256
-of what ``simulate`` and ``predict`` wrote (the same at every count, or a line says they
-differ). Per path, the Amdahl serial fraction ``s`` is fitted to the speed-ups over 1
+those threads; items per second at that speed, and the path's rate over it), the peak
+resident memory of the path's runs and of the peer's, apart (the process's ``VmHWM``,
+reset before each on Linux; the process's whole peak elsewhere, the interpreter and the
+imports included) and the SHA-256 of what ``simulate``, ``predict`` and ``predict_data``
+wrote (the same at every count, or a line says they differ). Per path, the Amdahl serial fraction ``s`` is fitted to the speed-ups over 1
 thread (least squares on ``1/S(n) = s + (1 - s)/n``), with the speed-up it predicts on 16
 threads; with only 1 and 2 threads (a 2-core machine) the fit is exact and the 16-thread
 figure a prediction. ``s`` is also estimated from the 2-thread run's thread samples (time
@@ -201,6 +203,33 @@ def transparent_huge_pages() -> str:
     except OSError:
         return "unknown"
     return next((word.strip("[]") for word in text.split() if word.startswith("[")), "unknown")
+
+
+def _reset_peak_memory() -> bool:
+    """Start this process's peak resident memory afresh (Linux: ``clear_refs`` 5), so the
+    next :func:`_peak_memory` covers what ran since; False where it cannot."""
+    try:
+        Path("/proc/self/clear_refs").write_text("5")
+    except OSError:
+        return False
+    return True
+
+
+def _peak_memory() -> int:
+    """This process's peak resident memory in bytes since the last reset (``VmHWM``), or
+    over its whole life where there is no such reset (``ru_maxrss``); 0 where neither is
+    known."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    try:
+        import resource
+    except ImportError:
+        return 0
+    return int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) * 1024
 
 
 def _measure(run: Callable[[], int], few: int | None = None) -> dict[str, Any]:
@@ -447,7 +476,9 @@ def child(job: dict[str, Any]) -> dict[str, Any]:
         run()
     repeat = max(1, int(job.get("repeat", 1)))
     few = job.get("few")
+    _reset_peak_memory()  # the warm-up's peak counts too: it ran the same work, or less
     result: dict[str, Any] = {"ours": _best(run, repeat, few)}
+    result["ours"]["peak_bytes"] = _peak_memory()
     if outputs:  # the last run's files: the same digest at every thread count
         result["digest"] = _digest(sorted(set(outputs)))
     if job.get("timeline"):  # one more run, its steps on a timeline
@@ -460,8 +491,11 @@ def child(job: dict[str, Any]) -> dict[str, Any]:
             "spans": [step.to_dict() for step in timeline.spans],
         }
     if peer is not None:
+        peer_apart = _reset_peak_memory()
         peer()
         result["peer"] = _best(peer, repeat)
+        if peer_apart:  # else the process's peak, ours included: not the peer's
+            result["peer"]["peak_bytes"] = _peak_memory()
     if floor is not None:
         floor()
         result["floor"] = _best(floor, repeat)
@@ -853,7 +887,7 @@ def main() -> None:
             f"{'path':<12} {'thr':>3} {'M items/s':>10} {'wall s':>8} {'CPU s':>8} "
             f"{'sys s':>6} {'faults':>7} "
             f"{'running':>7} {'peer M/s':>9} {'x peer':>7} {'CPU/peer':>8} {'floor M/s':>9} "
-            f"{'x floor':>7} {'load':>5} output sha256"
+            f"{'x floor':>7} {'peak MB':>7} {'peer MB':>7} {'load':>5} output sha256"
         )
         print(header)
         for path in args.paths:
@@ -904,9 +938,12 @@ def main() -> None:
                     row["floor_wall_s"] = floor["wall_s"]
                 if "digest" in result:
                     row["digest"] = result["digest"]
+                row["peak_bytes"] = ours["peak_bytes"]
                 if peer:
                     row["peer_wall_s"] = peer["wall_s"]
                     row["peer_cpu_s"] = peer["cpu_s"]
+                    row["peer_peak_bytes"] = peer.get("peak_bytes")
+                peer_peak = row.get("peer_peak_bytes")
                 rows.append(row)
                 print(
                     f"{path:<12} {n:>3} {rate / 1e6:>10.3f} {ours['wall_s']:>8.2f} "
@@ -917,6 +954,8 @@ def main() -> None:
                     f"{'' if cpu_ratio is None else f'{cpu_ratio:8.2f}':>8} "
                     f"{'' if floor_rate is None else f'{floor_rate / 1e6:9.1f}':>9} "
                     f"{'' if floor_rate is None else f'{rate / floor_rate:7.2f}':>7} "
+                    f"{ours['peak_bytes'] / 2**20:>7.0f} "
+                    f"{'' if peer_peak is None else f'{peer_peak / 2**20:7.0f}':>7} "
                     f"{ours['load']:>5.2f} {row.get('digest', '')}",
                     flush=True,
                 )
