@@ -33,7 +33,8 @@ files, in the same run:
 - ``evaluate``: :func:`semantic3d.evaluation.evaluate_submission` of 8 scans (links to the
   scan's labels 4 times over, 16 on 16 cores, and to a prediction of them wrong in runs of
   ~100 lines, a tenth of them), label pairs per second; peer: both files of each scan read
-  by ``pyarrow.csv.read_csv`` (N threads) and counted with ``numpy.bincount``.
+  by ``pyarrow.csv.read_csv`` (N threads) and counted with ``numpy.bincount``, whose
+  matrix the evaluation's must equal (the run stops where it does not).
 
 Each row gives the rate (items per second, wall clock), CPU seconds (and their ratio to the
 peer's, which a loaded machine disturbs less than wall time), the system CPU seconds and
@@ -62,7 +63,7 @@ their levels, forest and cut, every square of the cuts, the labels written) and 
 ran after the last tile started: which tiles' chains of steps the other threads waited for
 (with the threads of a tile's parts at their start and end). The spans go to
 ``bench_scaling_timeline.json``.
-Writes ``benchmarks/out/bench_scaling.json``.
+Writes ``bench_scaling.json`` into ``--out`` (``benchmarks/out``).
 """
 
 from __future__ import annotations
@@ -338,6 +339,7 @@ def child(job: dict[str, Any]) -> dict[str, Any]:
     scan = Path(job.get("scan", ""))  # absent for the paths that read no scan
     outputs: list[Path] = []  # files the measured runs wrote, digested after them
     floor: Callable[[], int] | None = None  # the reads a path cannot do without, alone
+    check: Callable[[], None] | None = None  # raises unless the path's result is the peer's
     if path == "compute":
         import _ceilings
 
@@ -462,7 +464,14 @@ def child(job: dict[str, Any]) -> dict[str, Any]:
 
         run_small = None
         files = [(path, predicted / path.name) for path in sorted(truth.glob("*.labels"))]
-        peer = lambda: _pyarrow_confusion(files, n, 8)  # noqa: E731
+        peer = lambda: int(_pyarrow_confusion(files, n, 8).sum())  # noqa: E731
+
+        def check() -> None:
+            _same_counts(
+                evaluate_submission(predicted, challenge=custom_challenge(truth)).confusion,
+                _pyarrow_confusion(files, n, 8)[1:, 1:],  # the scored classes
+            )
+
         floor = _ReadFloor(
             [path for pair in files for path in pair],
             n,
@@ -499,6 +508,9 @@ def child(job: dict[str, Any]) -> dict[str, Any]:
     if floor is not None:
         floor()
         result["floor"] = _best(floor, repeat)
+    if check is not None:
+        check()
+        result["agrees_with_peer"] = True
     return result
 
 
@@ -640,6 +652,12 @@ def _data_model(training: Path, work: Path) -> Path:
     return work / "data_model.s3dm"
 
 
+def _same_counts(ours: Any, peer: Any) -> None:
+    """Raise unless the path's counts are the peer's (a fast wrong answer is no answer)."""
+    if ours.shape != peer.shape or (ours != peer).any():
+        raise SystemExit(f"the counts differ from the peer's:\n{ours}\nagainst\n{peer}")
+
+
 def _label_files(truth: Path, work: Path, copies: int) -> dict[str, Any]:
     """One file of every evaluated scan's labels for ``read_labels``, and the truth and
     submission folders ``evaluate`` compares: hard links of one file of ``copies`` copies
@@ -679,10 +697,11 @@ def _prediction(truth: bytes) -> bytes:
     return text.tobytes()
 
 
-def _pyarrow_confusion(pairs: list[tuple[Path, Path]], n_threads: int, n_classes: int) -> int:
+def _pyarrow_confusion(pairs: list[tuple[Path, Path]], n_threads: int, n_classes: int) -> Any:
     """The confusion matrix as a user would count it without the package: each pair of
     files read by ``pyarrow.csv`` (its block reader on ``n_threads`` threads), the values
-    counted with ``numpy.bincount``. Returns the pairs counted."""
+    counted with ``numpy.bincount``; ``(n_classes + 1,) * 2`` counts, label 0 (unlabelled)
+    included, rows ground truth."""
     import numpy as np
     import pyarrow as pa
     import pyarrow.csv as pacsv
@@ -700,7 +719,7 @@ def _pyarrow_confusion(pairs: list[tuple[Path, Path]], n_threads: int, n_classes
         if t.size != p.size:
             raise SystemExit(f"{truth} and {predicted} differ in length")
         table += np.bincount(t * size + p, minlength=size * size)
-    return int(table.sum())
+    return table.reshape(size, size)
 
 
 def _open_at(spans: list[dict[str, Any]], t: float) -> list[dict[str, Any]]:
@@ -844,6 +863,9 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="1 M points, best of 2.")
     parser.add_argument("--workdir", default=None, help="Scratch folder (default: /tmp).")
     parser.add_argument(
+        "--out", default=str(OUT), help="Folder of the JSON results (default: benchmarks/out)."
+    )
+    parser.add_argument(
         "--where",
         action="store_true",
         help="Also name the code running while at most a quarter of the threads do "
@@ -938,6 +960,8 @@ def main() -> None:
                     row["floor_wall_s"] = floor["wall_s"]
                 if "digest" in result:
                     row["digest"] = result["digest"]
+                if "agrees_with_peer" in result:
+                    row["agrees_with_peer"] = result["agrees_with_peer"]
                 row["peak_bytes"] = ours["peak_bytes"]
                 if peer:
                     row["peer_wall_s"] = peer["wall_s"]
@@ -991,13 +1015,14 @@ def main() -> None:
     _print_against_the_machine(summary, counts)
     if args.where:
         _print_where(rows, counts[-1])
-    OUT.mkdir(parents=True, exist_ok=True)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
     for n, timeline in timelines.items():
         _print_timeline(timeline, n)
-        (OUT / "bench_scaling_timeline.json").write_text(
+        (out / "bench_scaling_timeline.json").write_text(
             json.dumps({"threads": n, **timeline}) + "\n"
         )
-        print(f"wrote {OUT / 'bench_scaling_timeline.json'}")
+        print(f"wrote {out / 'bench_scaling_timeline.json'}")
     report = {
         "cores": cores,
         "points": args.points,
@@ -1006,8 +1031,8 @@ def main() -> None:
         "rows": rows,
         "summary": summary,
     }
-    (OUT / "bench_scaling.json").write_text(json.dumps(report, indent=2) + "\n")
-    print(f"wrote {OUT / 'bench_scaling.json'}")
+    (out / "bench_scaling.json").write_text(json.dumps(report, indent=2) + "\n")
+    print(f"wrote {out / 'bench_scaling.json'}")
 
 
 if __name__ == "__main__":

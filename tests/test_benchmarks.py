@@ -1,0 +1,49 @@
+"""The scaling benchmark runs end to end on a tiny scan: each path against its peer and
+floor, its counts checked against the peer's, the table written where it is told (a
+device run that fails halfway costs what a test run costs nothing)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.slow
+def test_the_scaling_benchmark_measures_each_path_beside_its_peer_and_floor(
+    tmp_path: Path,
+) -> None:
+    out = tmp_path / "out"
+    done = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "benchmarks" / "bench_scaling.py"),
+            *("--points", "20000", "--threads", "1", "--repeat", "1"),
+            *("--paths", "evaluate", "read_labels", "simulate"),
+            *("--out", str(out), "--workdir", str(tmp_path)),
+        ],
+        capture_output=True,
+        text=True,
+        stdin=subprocess.DEVNULL,
+        env={**os.environ, "PYTHONPATH": str(ROOT / "src")},
+        timeout=500,
+        check=False,
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    report = json.loads((out / "bench_scaling.json").read_text())
+    rows = {row["path"]: row for row in report["rows"]}
+    assert set(rows) == {"evaluate", "read_labels", "simulate"}
+    for row in rows.values():
+        assert row["threads"] == 1 and row["rate"] > 0 and row["peak_bytes"] > 0
+    assert rows["evaluate"]["agrees_with_peer"] is True  # the same matrix as pyarrow + numpy
+    for path in ("evaluate", "read_labels"):
+        assert rows[path]["peer_rate"] > 0 and rows[path]["floor_rate"] > 0
+        assert rows[path]["peer_peak_bytes"] > 0
+    assert len(rows["simulate"]["digest"]) == 12
+    assert not list(tmp_path.glob("bench-scaling-*"))  # its scratch folder removed
