@@ -144,3 +144,38 @@ def test_a_model_is_tied_to_its_feature_columns(model: CovarianceModel) -> None:
     with pytest.raises(ValueError, match=r"feature rows: expected \(n, "):
         model.predict_rows(np.zeros((3, FeatureConfig(n_levels=2).n_features), np.float32))
     assert isinstance(model.config.prediction, PredictionConfig)
+
+
+def test_the_forest_run_on_rows_as_they_are_made_labels_as_on_the_whole_table(
+    model: CovarianceModel, scene_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Prediction runs the forest on each tile's rows a block at a time as they are made
+    (its table never whole); per tile, its labels, context step and all, are those of
+    ``predict_rows`` on the tile's whole table."""
+    import semantic3d.features.multiscale as multiscale
+    from semantic3d.baselines.covariance.context import row_centroids
+    from semantic3d.features.tiling import TiledScan
+
+    monkeypatch.setattr(multiscale, "ROW_BLOCK", 37)  # many blocks a tile
+    points = read_ascii_points(scene_dir / "test.txt")
+    with TiledScan(
+        [points], config=model.config.features, tile_size_m=6.4, workdir=tmp_path
+    ) as scan:
+        assert len(scan.tiles) > 2
+        for tile in scan.tiles:
+            whole = scan.tile_features(tile)
+            mapped = scan.tile_features(tile, row_map=model.row_probabilities)
+            assert whole is not None and mapped is not None
+            assert mapped.table.mapped is not None and mapped.table.values.shape[1] == 0
+            graph: dict[str, np.ndarray | None] = {"neighbours": whole.table.neighbours}
+            if model.needs_row_positions(whole.table):
+                graph["row_xyz"] = row_centroids(
+                    whole.xyz.astype(np.float32), whole.table.point_row, whole.table.n_rows
+                )
+            expected = model.predict_rows(whole.table.values, **graph)
+            np.testing.assert_array_equal(
+                model.label_probabilities(mapped.table.mapped, **graph), expected
+            )
+            np.testing.assert_array_equal(
+                mapped.table.mapped, model.row_probabilities(whole.table.values)
+            )

@@ -640,3 +640,66 @@ def test_small_tiles_start_beside_the_large_ones_on_the_threads_their_work_earns
     }
     assert {step.attrs["threads"] for step in small_spans} == {1}
     assert min(step.start_s for step in small_spans) < min(step.end_s for step in large.values())
+
+
+@pytest.mark.parametrize("whole_level_points", [0, 1_000_000])  # levels by tile / some whole
+def test_a_row_map_sees_a_tiles_rows_a_block_at_a_time_and_gives_the_whole_scans_results(
+    scene: PointCloud, tmp_path, monkeypatch: pytest.MonkeyPatch, whole_level_points: int
+) -> None:
+    """With a row map, a tile's rows reach it in blocks of at most ``ROW_BLOCK`` rows as
+    they are made (each level's distinct rows held, never the table): the mapped rows are
+    those of the whole scan's rows, row for row, on one thread and on a map of 3, and the
+    table keeps no feature values."""
+    import semantic3d.features.multiscale as multiscale
+    from semantic3d.core.threads import thread_limit
+    from semantic3d.features.scan import map_scan_features
+
+    monkeypatch.setattr(multiscale, "ROW_BLOCK", 50)
+    expected_values = compute_multiscale_features(scene, config=SMALL).point_values()
+
+    def of_rows(values: np.ndarray) -> np.ndarray:  # row by row: elementwise, every level
+        return values.astype(np.float64) * 3.0 - 1.0
+
+    expected = of_rows(expected_values)
+    blocks: list[int] = []
+
+    def row_map(values: np.ndarray) -> np.ndarray:
+        assert values.dtype == np.float32 and values.shape[1] == SMALL.n_features
+        blocks.append(values.shape[0])
+        return of_rows(values)
+
+    def mapped(tiles: Iterable[TileFeatures]) -> np.ndarray:
+        got = np.full_like(expected, np.nan)
+        for tile in tiles:
+            assert tile.table.values.shape == (tile.table.n_rows, 0)
+            assert tile.table.mapped is not None
+            got[tile.point_indices] = tile.table.mapped[tile.table.point_row]
+        return got
+
+    with TiledScan(
+        _chunks(scene, 7000),
+        config=SMALL,
+        tile_size_m=6.4,
+        workdir=tmp_path,
+        whole_level_points=whole_level_points,
+    ) as scan:
+        assert len(scan.tiles) > 4
+        np.testing.assert_array_equal(mapped(scan.iter_features(row_map=row_map)), expected)
+        assert max(blocks) <= 50 and len(blocks) > 2 * len(scan.tiles)
+        with thread_limit(3):
+            on_three = mapped(scan.map_tiles(lambda tile: tile, n_threads=3, row_map=row_map))
+        np.testing.assert_array_equal(on_three, expected)
+    for limit in (10**9, 7000):  # in memory, then tiled: the same mapped rows
+        got = np.full_like(expected, np.nan)
+        for block in map_scan_features(
+            _chunks(scene, 7000),
+            lambda block: block,
+            config=SMALL,
+            max_points_in_memory=limit,
+            tile_size_m=6.4,
+            workdir=tmp_path,
+            row_map=row_map,
+        ):
+            assert block.table.mapped is not None and block.table.values.shape[1] == 0
+            got[block.point_indices] = block.table.mapped[block.table.point_row]
+        np.testing.assert_array_equal(got, expected)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numba
 import numpy as np
@@ -49,12 +50,17 @@ class FeatureTable:
             canonical k-NN, so the voxel itself comes first), ``-1`` where that voxel has no
             row here (its points were not requested, or lie in another tile); None in
             per-point mode. A graph over the rows for free (the context step's).
+        mapped: the rows passed through a caller's ``row_map`` as they were made, one
+            result row per feature row (e.g. a classifier's class probabilities), where
+            the caller asked for it; ``values`` then has no columns (``(n_rows, 0)``): the
+            feature rows were never held all at once.
     """
 
     names: tuple[str, ...]
     values: NDArray[np.float32]
     point_row: NDArray[np.int64]
     neighbours: NDArray[np.int64] | None = None
+    mapped: NDArray[Any] | None = None
 
     @property
     def n_rows(self) -> int:
@@ -64,6 +70,53 @@ class FeatureTable:
     def point_values(self) -> NDArray[np.float32]:
         """``(n_points, n_features)``: the row of every requested point (a copy)."""
         return self.values[self.point_row]
+
+
+RowMap = Callable[[NDArray[np.float32]], NDArray[Any]]
+"""A map of feature rows ``(m, n_features)`` to ``m`` result rows, row by row (a row's
+result depends on that row alone), applied to blocks of a table's rows as they are made."""
+
+ROW_BLOCK = 1 << 16
+"""Feature rows made and mapped at a time when a caller maps them (about 40 MB at the
+default 153 columns): a tile's table of a million rows is never held whole."""
+
+
+def map_rows(
+    n_rows: int,
+    n_columns: int,
+    fill: Callable[[int, NDArray[np.float32]], None],
+    row_map: RowMap,
+) -> NDArray[Any]:
+    """``row_map`` of ``n_rows`` feature rows made :data:`ROW_BLOCK` at a time:
+    ``fill(start, out)`` writes rows ``start .. start + len(out)`` into ``out`` (one
+    buffer, reused), and the results go one after another into the array returned."""
+    block = np.empty((min(ROW_BLOCK, n_rows), n_columns), np.float32)
+    mapped: NDArray[Any] | None = None
+    for start in range(0, n_rows, ROW_BLOCK):
+        part = block[: min(ROW_BLOCK, n_rows - start)]
+        fill(start, part)
+        result = row_map(part)
+        if mapped is None:
+            mapped = np.empty((n_rows, *result.shape[1:]), result.dtype)
+        mapped[start : start + part.shape[0]] = result
+    return row_map(block[:0]) if mapped is None else mapped
+
+
+def map_table_rows(table: FeatureTable, row_map: RowMap) -> FeatureTable:
+    """``table`` with its rows mapped by ``row_map`` (:func:`map_rows`) into
+    :attr:`FeatureTable.mapped`, its values dropped."""
+    values = table.values
+
+    def fill(start: int, out: NDArray[np.float32]) -> None:
+        out[:] = values[start : start + out.shape[0]]
+
+    return FeatureTable(
+        table.names,
+        np.empty((table.n_rows, 0), np.float32),
+        table.point_row,
+        table.neighbours,
+        mapped=map_rows(table.n_rows, values.shape[1], fill, row_map),
+    )
 
 
 def attribute_columns(cloud: PointCloud, config: FeatureConfig) -> NDArray[np.float64] | None:

@@ -22,7 +22,12 @@ from numpy.typing import ArrayLike, NDArray
 from semantic3d.core.errors import ShapeError
 from semantic3d.core.pointcloud import PointCloud
 from semantic3d.features.config import FeatureConfig
-from semantic3d.features.multiscale import FeatureTable, compute_multiscale_features
+from semantic3d.features.multiscale import (
+    FeatureTable,
+    RowMap,
+    compute_multiscale_features,
+    map_table_rows,
+)
 from semantic3d.features.tiling import DEFAULT_TILE_SIZE_M, TiledScan, TileFeatures
 
 R = TypeVar("R")
@@ -92,6 +97,7 @@ def map_scan_features(
     tile_size_m: float = DEFAULT_TILE_SIZE_M,
     workdir: str | Path | None = None,
     n_threads: int | None = None,
+    row_map: RowMap | None = None,
 ) -> Iterator[R]:
     """``function(block)`` for every feature block of a streamed scan (those of
     :func:`iter_scan_features`).
@@ -100,7 +106,10 @@ def map_scan_features(
     at once (default the thread budget, :mod:`semantic3d.core.threads`; see
     :meth:`~semantic3d.features.tiling.TiledScan.map_tiles`): results come as tiles finish,
     in no fixed order (one thread: tiles in order), each the same as alone. ``function``
-    must be safe to call from several threads at once.
+    must be safe to call from several threads at once. With ``row_map`` every block's
+    rows reach ``function`` mapped (:attr:`~semantic3d.features.multiscale.FeatureTable.mapped`):
+    a tile's as they are made, never its whole table at once
+    (:meth:`~semantic3d.features.tiling.TiledScan.tile_features`).
     """
     stream = iter(chunks)
     held: list[PointCloud] = []
@@ -121,10 +130,12 @@ def map_scan_features(
                     return function(block)
 
                 if n_threads == 1:
-                    for tile in scan.iter_features(select=select):
+                    for tile in scan.iter_features(select=select, row_map=row_map):
                         yield describe(tile)
                 else:
-                    yield from scan.map_tiles(describe, select=select, n_threads=n_threads)
+                    yield from scan.map_tiles(
+                        describe, select=select, n_threads=n_threads, row_map=row_map
+                    )
             return
     if held_points == 0:
         raise ShapeError("cannot compute features of an empty scan")
@@ -138,5 +149,7 @@ def map_scan_features(
     if indices.size == 0:
         return
     table = compute_multiscale_features(cloud, config=config, point_indices=indices)
+    if row_map is not None:
+        table = map_table_rows(table, row_map)
     labels = None if cloud.labels is None else cloud.labels[indices]
     yield function(FeatureBlock(indices, table, labels, cloud.n_points, tiled=False))

@@ -66,12 +66,14 @@ from semantic3d.features._row_kernels import (
 from semantic3d.features.config import ConfigError, FeatureConfig
 from semantic3d.features.multiscale import (
     FeatureTable,
+    RowMap,
     attribute_columns,
     compute_level_features,
     distinct_voxels,
-    fill_level_columns,
     level_reach,
     level_rows,
+    map_rows,
+    map_table_rows,
     reach_of_kth,
 )
 from semantic3d.features.neighbourhoods import LevelIndex, kth_squared_distances
@@ -208,6 +210,24 @@ class TileFeatures:
     table: FeatureTable
     labels: NDArray[np.uint8] | None
     xyz: NDArray[np.float64]
+
+
+def _gather_level_columns(
+    sources: list[tuple[int, NDArray[np.float32], NDArray[np.int64] | None]],
+    width: int,
+    start: int,
+    out: NDArray[np.float32],
+) -> None:
+    """Rows ``start .. start + len(out)`` of a tile's table into ``out``: level ``n``'s
+    columns of a row are ``rows[index[row]]`` of its source ``(n, rows, index)`` (index
+    None: the source's rows are the table's, in order)."""
+    stop = start + out.shape[0]
+    for number, rows, index in sources:
+        columns = out[:, number * width : (number + 1) * width]
+        if index is None:
+            columns[:] = rows[start:stop]
+        else:
+            put_rows(rows, index[start:stop], columns, 0)  # columns[:] = rows[index[...]]
 
 
 class TiledScan:
@@ -480,21 +500,28 @@ class TiledScan:
         return value
 
     # -- pass 3: features ------------------------------------------------------------------
-    def iter_features(self, *, select: ArrayLike | None = None) -> Iterator[TileFeatures]:
+    def iter_features(
+        self, *, select: ArrayLike | None = None, row_map: RowMap | None = None
+    ) -> Iterator[TileFeatures]:
         """Feature rows tile by tile (tiles in sorted order, points ascending inside).
 
         Args:
             select: global indices of the points to describe (default all); tiles without
                 a selected point are skipped.
+            row_map: map each tile's rows as they are made (:meth:`tile_features`).
         """
         wanted = None if select is None else np.unique(np.asarray(select, dtype=np.int64))
         for tile in self.tiles:
-            features = self.tile_features(tile, select=wanted)
+            features = self.tile_features(tile, select=wanted, row_map=row_map)
             if features is not None:
                 yield features
 
     def tile_features(
-        self, tile: Tile, *, select: NDArray[np.int64] | None = None
+        self,
+        tile: Tile,
+        *,
+        select: NDArray[np.int64] | None = None,
+        row_map: RowMap | None = None,
     ) -> TileFeatures | None:
         """Feature rows of one tile (its points ascending), None when none is selected.
 
@@ -505,6 +532,11 @@ class TiledScan:
         Args:
             tile: one of :attr:`tiles`.
             select: sorted unique global indices of the points to describe (default all).
+            row_map: map the rows :data:`~semantic3d.features.multiscale.ROW_BLOCK` at a
+                time as they are made, each level's distinct rows held instead of the
+                table (a million-row tile's table is 600 MB at the default 153 columns):
+                the table's :attr:`~semantic3d.features.multiscale.FeatureTable.mapped`
+                holds the results, its ``values`` no columns.
         """
         points = self._load_points(tile)
         if select is None:  # every point: one copy of the columns, on every thread
@@ -519,7 +551,7 @@ class TiledScan:
                 return None
             labels = points.cloud.labels[keep] if points.cloud.labels is not None else None
             xyz, indices, local = points.cloud.xyz[keep], points.indices[keep], np.flatnonzero(keep)
-        table = self._tile_table(tile, xyz, local)
+        table = self._tile_table(tile, xyz, local, row_map)
         return TileFeatures(tile, indices, table, labels, xyz)
 
     def share(self) -> None:
@@ -588,6 +620,7 @@ class TiledScan:
         *,
         select: ArrayLike | None = None,
         n_threads: int | None = None,
+        row_map: RowMap | None = None,
     ) -> Iterator[R]:
         """``function(features)`` for every tile with a selected point, tiles at the same time.
 
@@ -602,7 +635,8 @@ class TiledScan:
         the tiles around them, with fewer points in more voxels, are not left on too few
         threads to the end. Tiles of less than a thread's share run one thread each,
         beside the large tiles on the threads their work earns together, not all after
-        them.
+        them. With ``row_map`` each tile's rows are mapped as they are made
+        (:meth:`tile_features`), on the tile's threads.
         """
         wanted = None if select is None else np.unique(np.asarray(select, dtype=np.int64))
         n_threads = thread_budget() if n_threads is None else max(1, int(n_threads))
@@ -622,7 +656,7 @@ class TiledScan:
                 threads=threads_of(tile),
             ):
                 with span("features", threads=thread_budget()):
-                    features = self.tile_features(tile, select=wanted)
+                    features = self.tile_features(tile, select=wanted, row_map=row_map)
                 return (False, None) if features is None else (True, function(features))
 
         self._cache_scale = n_threads
@@ -670,10 +704,15 @@ class TiledScan:
                 self._whole, self._first_halo = pickle.load(stream)
 
     def _tile_table(
-        self, tile: Tile, xyz: NDArray[np.float64], local: NDArray[np.int64] | None
+        self,
+        tile: Tile,
+        xyz: NDArray[np.float64],
+        local: NDArray[np.int64] | None,
+        row_map: RowMap | None = None,
     ) -> FeatureTable:
         """Rows of the tile's points ``local`` (its points' positions in the tile; None:
-        every point), at ``xyz``."""
+        every point), at ``xyz``; with ``row_map``, the rows mapped block by block
+        (:meth:`tile_features`)."""
         assert self.origin is not None
         config = self.config
         width = len(config.level_feature_names)
@@ -684,57 +723,67 @@ class TiledScan:
                 values[:, number * width : (number + 1) * width] = self._exact_level(
                     tile, number, queries
                 )
-            return FeatureTable(
+            table = FeatureTable(
                 config.feature_names, values, np.arange(queries.shape[0], dtype=np.int64)
             )
+            return table if row_map is None else map_table_rows(table, row_map)
         levels = [self._level(tile, number) for number in range(config.n_levels)]  # held
         point_voxels = self._point_voxels(tile)
         voxels, point_row = distinct_voxels(point_voxels if local is None else point_voxels[local])
-        values = np.empty((voxels.size, config.n_features), np.float32)
+        # the table whole, or (with row_map) only each level's distinct rows: a row's
+        # columns of level n are ``rows[index[row]]`` of its source (index None: in order)
+        table_values = (
+            np.empty((voxels.size, config.n_features), np.float32) if row_map is None else None
+        )
+        sources: list[tuple[int, NDArray[np.float32], NDArray[np.int64] | None]] = []
         # level 0 (one row per voxel, in row order) also gives every row its k-NN
         neighbour_keys = np.empty((voxels.size, config.k_neighbours), np.int64)
         take_free_threads()  # a map's last tiles go on with the threads others left
         asks: list[_LevelAsk] = []
-        copies: list[tuple[NDArray[np.float32], NDArray[np.int64], NDArray[np.float32]]] = []
         ancestor = voxels
         for number in range(config.n_levels):
             if number:
                 ancestor = levels[number - 1].parent[ancestor]
-            columns = values[:, number * width : (number + 1) * width]
+            needed, inverse = level_rows(ancestor)
             whole = self._whole_level(number)
             if whole is not None:  # looked up in the rows of the level described whole
-
-                def look_up(
-                    needed: NDArray[np.int64],
-                    out: NDArray[np.float32],
-                    number: int = number,
-                    whole: _WholeLevel = whole,
-                ) -> None:
-                    at = np.searchsorted(whole.keys, levels[number].keys[needed])
-                    put_rows(whole.rows, at, out, 0)  # out[:] = whole.rows[at]
-                    if number == 0 and whole.neighbour_keys is not None:
-                        found = whole.neighbour_keys.shape[1]
-                        put_rows(whole.neighbour_keys, at, neighbour_keys[:, :found], 0)
-                        neighbour_keys[:, found:] = -1
-
-                fill_level_columns(columns, ancestor, look_up)
+                at = np.searchsorted(whole.keys, levels[number].keys[needed])
+                if number == 0 and whole.neighbour_keys is not None:  # rows are its voxels
+                    found = whole.neighbour_keys.shape[1]
+                    put_rows(whole.neighbour_keys, at, neighbour_keys[:, :found], 0)
+                    neighbour_keys[:, found:] = -1
+                sources.append((number, whole.rows, at if inverse is None else at[inverse]))
                 continue
-            needed, inverse = level_rows(ancestor)
             level = levels[number]
-            out = columns if inverse is None else np.empty((needed.size, width), np.float32)
+            if inverse is None and table_values is not None:  # computed in place
+                out = table_values[:, number * width : (number + 1) * width]
+            else:
+                out = np.empty((needed.size, width), np.float32)
+                sources.append((number, out, inverse))
             queries = level.xyz if needed.size == level.n_voxels else take_rows(level.xyz, needed)
             asks.append(_LevelAsk(number, queries, out, neighbour_keys if number == 0 else None))
-            if inverse is not None:
-                copies.append((out, inverse, columns))
         with span("levels", levels=[a.number for a in asks], threads=thread_budget()) as attrs:
             attrs["parts"] = self._exact_levels_in_parts(tile, asks)
             attrs["threads_after"] = thread_budget()
-        for block, inverse, columns in copies:
-            put_rows(block, inverse, columns, 0)  # columns[:] = block[inverse]
         neighbours = rows_of_keys(neighbour_keys, levels[0].keys[voxels])
         # a scan of fewer than k level-0 voxels has fewer neighbours: as the whole-scan path
         width_found = min(config.k_neighbours, self._level_sizes[0])
-        return FeatureTable(config.feature_names, values, point_row, neighbours[:, :width_found])
+        neighbours = neighbours[:, :width_found]
+        if table_values is not None:
+            _gather_level_columns(sources, width, 0, table_values)
+            return FeatureTable(config.feature_names, table_values, point_row, neighbours)
+        assert row_map is not None
+
+        def fill(start: int, out: NDArray[np.float32]) -> None:
+            _gather_level_columns(sources, width, start, out)
+
+        return FeatureTable(
+            config.feature_names,
+            np.empty((voxels.size, 0), np.float32),
+            point_row,
+            neighbours,
+            mapped=map_rows(voxels.size, config.n_features, fill, row_map),
+        )
 
     def _whole_level(self, number: int) -> _WholeLevel | None:
         """Features of every voxel of a small level, computed once over the whole level.

@@ -9,7 +9,8 @@ scratch folder, which the workers must see) and computes once what every tile sh
 (:meth:`~semantic3d.features.tiling.TiledScan.share`); each worker opens the scan from
 that folder once, computes one tile's features with the same
 :meth:`~semantic3d.features.tiling.TiledScan.tile_features` the single-process path
-calls and classifies them with the same ``predict_rows``; the labels come back with the
+calls and classifies them with the same ``row_probabilities`` and
+``label_probabilities``; the labels come back with the
 points' positions and go into the label buffer, which writes ``.labels`` in the input's
 point order. Every scan is tiled here, small ones too: tiled rows equal whole-scan rows
 bit for bit, so the labels are byte for byte those of the single-process path.
@@ -123,8 +124,9 @@ class ClusterPredictor:
 def label_tile(scan_folder: str, scan_state: bytes, model_path: str, tile: TileKey) -> TileLabels:
     """Label values of one tile's points, computed where the scan's folder is visible.
 
-    The same features (:meth:`TiledScan.tile_features`) and classifier call
-    (:meth:`CovarianceModel.predict_rows`) as the single-process path.
+    The same features (:meth:`TiledScan.tile_features`, the forest run on the rows as they
+    are made: :meth:`CovarianceModel.row_probabilities`) and labelling
+    (:meth:`CovarianceModel.label_probabilities`) as the single-process path.
 
     Args:
         scan_folder: the :class:`TiledScan`'s scratch folder (the key it is kept under).
@@ -133,11 +135,13 @@ def label_tile(scan_folder: str, scan_state: bytes, model_path: str, tile: TileK
         tile: the tile to label.
     """
     opened = open_tiled_scan(scan_folder, scan_state)
-    features = opened.tile_features(tile)
+    model = _load_pickled_model(model_path)
+    # the forest on the rows as they are made, as in one process: the table is never whole
+    features = opened.tile_features(tile, row_map=model.row_probabilities)
     if features is None:
         return np.empty(0, np.int64), np.empty(0, np.uint8)
-    model = _load_pickled_model(model_path)
     table = features.table
+    assert table.mapped is not None
     row_xyz = None
     if model.needs_row_positions(table):
         # positions relative to the grid origin, as in one process
@@ -145,8 +149,8 @@ def label_tile(scan_folder: str, scan_state: bytes, model_path: str, tile: TileK
         row_xyz = row_centroids(relative, table.point_row, table.n_rows)
     row_cell = np.zeros(table.n_rows, np.uint16)  # the squares a dense tile's graph is cut in
     row_cell[table.point_row] = point_cells(features.xyz, origin=opened.origin, config=model.config)
-    labels = model.predict_rows(
-        table.values, row_xyz=row_xyz, row_cell=row_cell, neighbours=table.neighbours
+    labels = model.label_probabilities(
+        table.mapped, row_xyz=row_xyz, row_cell=row_cell, neighbours=table.neighbours
     )[table.point_row]
     return features.point_indices, labels
 

@@ -151,16 +151,19 @@ class CovarianceModel:
             max_points_in_memory=prediction.max_points_in_memory,
             tile_size_m=prediction.tile_size_m,
             workdir=workdir / "tiles",
+            # the forest runs on a tile's rows as they are made: its table is never whole
+            row_map=self.row_probabilities,
         )
 
     def _label_block(
         self, block: FeatureBlock, positions: _PositionFile | None
     ) -> NDArray[np.uint8]:
-        """Label values of a feature block's points (the rows' labels, per point)."""
+        """Label values of a feature block's points (the rows' labels, per point): from its
+        rows' class probabilities where the forest ran as they were made
+        (:attr:`~semantic3d.features.multiscale.FeatureTable.mapped`), else from its rows."""
         table = block.table
-        if positions is None:
-            row_labels = self.predict_rows(table.values)
-        else:
+        graph: dict[str, Any] = {}
+        if positions is not None:
             row_xyz = (
                 row_centroids(
                     positions.read_xyz(block.point_indices), table.point_row, table.n_rows
@@ -171,13 +174,16 @@ class CovarianceModel:
             row_tile, row_cell = positions.row_places(
                 block.point_indices, table.point_row, table.n_rows
             )
-            row_labels = self.predict_rows(
-                table.values,
-                row_xyz=row_xyz,
-                row_tile=row_tile,
-                row_cell=row_cell,
-                neighbours=table.neighbours,
-            )
+            graph = {
+                "row_xyz": row_xyz,
+                "row_tile": row_tile,
+                "row_cell": row_cell,
+                "neighbours": table.neighbours,
+            }
+        if table.mapped is None:
+            row_labels = self.predict_rows(table.values, **graph)
+        else:
+            row_labels = self.label_probabilities(table.mapped, **graph)
         labels: NDArray[np.uint8] = row_labels[table.point_row]
         return labels
 
@@ -234,11 +240,38 @@ class CovarianceModel:
             raise ShapeError(
                 f"feature rows: expected (n, {len(self.feature_names)}), found {values.shape}"
             )
+        return self.label_probabilities(
+            self.row_probabilities(values),
+            row_xyz=row_xyz,
+            row_tile=row_tile,
+            row_cell=row_cell,
+            neighbours=neighbours,
+        )
+
+    def row_probabilities(self, values: NDArray[np.float32]) -> NDArray[np.float64]:
+        """The forest's class probabilities of feature rows, on the threads a map's last
+        tasks find free (a :data:`~semantic3d.features.multiscale.RowMap`)."""
         if values.shape[0] == 0:
-            return np.empty(0, np.uint8)
+            return np.empty((0, len(self.classifier.classes_)), np.float64)
         threads = take_free_threads()  # in a map's last tasks: the threads the others left
         with span("forest", rows=values.shape[0], threads=threads):
-            proba = self.classifier.compiled_.predict_proba(values)
+            proba: NDArray[np.float64] = self.classifier.compiled_.predict_proba(values)
+        return proba
+
+    def label_probabilities(
+        self,
+        proba: NDArray[np.float64],
+        *,
+        row_xyz: NDArray[np.floating] | None = None,
+        row_tile: NDArray[np.int64] | None = None,
+        row_cell: NDArray[np.uint16] | None = None,
+        neighbours: NDArray[np.int64] | None = None,
+    ) -> NDArray[np.uint8]:
+        """Label values of rows from their class probabilities (:meth:`row_probabilities`),
+        with the context step as :meth:`predict_rows` has it: ``predict_rows(values, ...)``
+        is ``label_probabilities(row_probabilities(values), ...)``."""
+        if proba.shape[0] == 0:
+            return np.empty(0, np.uint8)
         classes = np.asarray(self.classifier.classes_, dtype=np.uint8)
         context = self.context
         graph = row_xyz is not None or lists_suffice(neighbours, context.n_neighbours)
