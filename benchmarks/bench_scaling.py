@@ -257,13 +257,13 @@ def _measure(run: Callable[[], int], few: int | None = None) -> dict[str, Any]:
     }
 
 
-def _best(run: Callable[[], int], repeat: int, few: int | None = None) -> dict[str, Any]:
+def _best(
+    run: Callable[[], int], repeat: int, few: int | None = None, min_s: float = MIN_TIMED_S
+) -> dict[str, Any]:
     """The fastest of ``repeat`` measured runs, or of more while they add up to less than
-    :data:`MIN_TIMED_S` (at most :data:`MAX_RUNS`); its ``runs`` says how many."""
+    ``min_s`` (:data:`MIN_TIMED_S`; at most :data:`MAX_RUNS`); its ``runs`` says how many."""
     runs = [_measure(run, few)]
-    while len(runs) < repeat or (
-        sum(m["wall_s"] for m in runs) < MIN_TIMED_S and len(runs) < MAX_RUNS
-    ):
+    while len(runs) < repeat or (sum(m["wall_s"] for m in runs) < min_s and len(runs) < MAX_RUNS):
         runs.append(_measure(run, few))
     return {**min(runs, key=lambda m: m["wall_s"]), "runs": len(runs)}
 
@@ -486,7 +486,8 @@ def child(job: dict[str, Any]) -> dict[str, Any]:
     repeat = max(1, int(job.get("repeat", 1)))
     few = job.get("few")
     _reset_peak_memory()  # the warm-up's peak counts too: it ran the same work, or less
-    result: dict[str, Any] = {"ours": _best(run, repeat, few)}
+    min_s = float(job.get("min_seconds", MIN_TIMED_S))
+    result: dict[str, Any] = {"ours": _best(run, repeat, few, min_s)}
     result["ours"]["peak_bytes"] = _peak_memory()
     if outputs:  # the last run's files: the same digest at every thread count
         result["digest"] = _digest(sorted(set(outputs)))
@@ -502,12 +503,12 @@ def child(job: dict[str, Any]) -> dict[str, Any]:
     if peer is not None:
         peer_apart = _reset_peak_memory()
         peer()
-        result["peer"] = _best(peer, repeat)
+        result["peer"] = _best(peer, repeat, min_s=min_s)
         if peer_apart:  # else the process's peak, ours included: not the peer's
             result["peer"]["peak_bytes"] = _peak_memory()
     if floor is not None:
         floor()
-        result["floor"] = _best(floor, repeat)
+        result["floor"] = _best(floor, repeat, min_s=min_s)
     if check is not None:
         check()
         result["agrees_with_peer"] = True
@@ -861,6 +862,12 @@ def main() -> None:
     parser.add_argument("--oakland", default=str(ROOT.parent / "shared" / "data" / "oakland"))
     parser.add_argument("--repeat", type=int, default=3, help="Best of this many runs.")
     parser.add_argument("--quick", action="store_true", help="1 M points, best of 2.")
+    parser.add_argument(
+        "--min-seconds",
+        type=float,
+        default=MIN_TIMED_S,
+        help="Repeat a measurement past --repeat until its runs add up to this (default 1.5).",
+    )
     parser.add_argument("--workdir", default=None, help="Scratch folder (default: /tmp).")
     parser.add_argument(
         "--out", default=str(OUT), help="Folder of the JSON results (default: benchmarks/out)."
@@ -915,7 +922,13 @@ def main() -> None:
         for path in args.paths:
             rates: dict[int, float] = {}
             for n in counts:
-                job = {**shared, "path": path, "threads": n, "repeat": args.repeat}
+                job = {
+                    **shared,
+                    "path": path,
+                    "threads": n,
+                    "repeat": args.repeat,
+                    "min_seconds": args.min_seconds,
+                }
                 if args.where and n == counts[-1]:
                     job["few"] = max(1, n // 4)
                 if args.timeline and path == "predict" and n == counts[-1]:

@@ -24,7 +24,7 @@ def test_the_scaling_benchmark_measures_each_path_beside_its_peer_and_floor(
         [
             sys.executable,
             str(ROOT / "benchmarks" / "bench_scaling.py"),
-            *("--points", "20000", "--threads", "1", "--repeat", "1"),
+            *("--points", "20000", "--threads", "1", "--repeat", "1", "--min-seconds", "0"),
             *("--paths", "evaluate", "read_labels", "simulate"),
             *("--out", str(out), "--workdir", str(tmp_path)),
         ],
