@@ -315,7 +315,8 @@ class _ReadFloor:
         return self.items
 
 
-def _pyarrow_rows(path: Path, n_threads: int, columns: list[str]) -> int:
+def _pyarrow_table(path: Path, n_threads: int, columns: list[str]) -> Any:
+    """The space-separated text file read by ``pyarrow.csv`` on ``n_threads`` threads."""
     import pyarrow as pa
     import pyarrow.csv as pacsv
 
@@ -323,7 +324,11 @@ def _pyarrow_rows(path: Path, n_threads: int, columns: list[str]) -> int:
     pa.set_io_thread_count(n_threads)
     read = pacsv.ReadOptions(column_names=columns, use_threads=True)
     parse = pacsv.ParseOptions(delimiter=" ")
-    return int(pacsv.read_csv(path, read_options=read, parse_options=parse).num_rows)
+    return pacsv.read_csv(path, read_options=read, parse_options=parse)
+
+
+def _pyarrow_rows(path: Path, n_threads: int, columns: list[str]) -> int:
+    return int(_pyarrow_table(path, n_threads, columns).num_rows)
 
 
 def child(job: dict[str, Any]) -> dict[str, Any]:
@@ -704,17 +709,12 @@ def _pyarrow_confusion(pairs: list[tuple[Path, Path]], n_threads: int, n_classes
     counted with ``numpy.bincount``; ``(n_classes + 1,) * 2`` counts, label 0 (unlabelled)
     included, rows ground truth."""
     import numpy as np
-    import pyarrow as pa
-    import pyarrow.csv as pacsv
 
-    pa.set_cpu_count(n_threads)
-    pa.set_io_thread_count(n_threads)
-    read = pacsv.ReadOptions(column_names=["label"], use_threads=True)
     size = n_classes + 1
     table = np.zeros(size * size, np.int64)
     for truth, predicted in pairs:
         t, p = (
-            pacsv.read_csv(path, read_options=read).column(0).to_numpy()
+            _pyarrow_table(path, n_threads, ["label"]).column(0).to_numpy()
             for path in (truth, predicted)
         )
         if t.size != p.size:
