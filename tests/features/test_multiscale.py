@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 import semantic3d.features.names as names_module
 from semantic3d.core import PointCloud
 from semantic3d.core.errors import ShapeError
-from semantic3d.features import ConfigError, FeatureConfig, compute_multiscale_features
+from semantic3d.features import ConfigError, FeatureConfig, compute_multiscale_features, tiling
 from semantic3d.features.attributes import compute_attribute_features
 from semantic3d.features.multiscale import distinct_voxels
 from semantic3d.features.names import CYLINDER_FEATURES, GEOMETRIC_FEATURES, parse_column_name
@@ -102,13 +102,35 @@ def test_coarse_levels_with_fewer_points_than_k_use_all_of_them() -> None:
 
 
 @pytest.mark.parametrize(
-    ("per_point", "whole_level_points", "cache_bytes"),
-    [(False, 0, 96 << 20), (False, 5000, 96 << 20), (True, 0, 96 << 20), (False, 5000, 1)],
-    ids=["voxel-halos", "voxel-coarse-levels-whole", "per-point-halos", "every-level-reread"],
+    ("per_point", "whole_level_points", "cache_bytes", "part_points"),
+    [
+        (False, 0, 96 << 20, 1 << 40),
+        (False, 5000, 96 << 20, 1 << 40),
+        (True, 0, 96 << 20, 1 << 40),
+        (False, 5000, 1, 1 << 40),
+        (False, 0, 96 << 20, 97),
+        (True, 5000, 96 << 20, 53),
+    ],
+    ids=[
+        "voxel-halos",
+        "voxel-coarse-levels-whole",
+        "per-point-halos",
+        "every-level-reread",
+        "voxel-pyramids-in-parts",
+        "per-point-pyramids-in-parts",
+    ],
 )
 def test_tiled_features_equal_whole_scan_features_bit_for_bit(
-    scene: PointCloud, per_point: bool, whole_level_points: int, cache_bytes: int, tmp_path
+    scene: PointCloud,
+    per_point: bool,
+    whole_level_points: int,
+    cache_bytes: int,
+    part_points: int,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
 ) -> None:
+    # tiles of more than part_points points build their pyramids a part at a time
+    monkeypatch.setattr(tiling, "PYRAMID_PART_POINTS", part_points)
     config = FeatureConfig(
         **{
             **_fields(SMALL),
@@ -129,10 +151,20 @@ def test_tiled_features_equal_whole_scan_features_bit_for_bit(
         cache_bytes=cache_bytes,
     ) as scan:
         assert len(scan.tiles) > 30  # small tiles: halos cross many tiles at coarse levels
+        assert max(scan.store.count(tile) for tile in scan.tiles) > 3 * part_points or (
+            part_points > scene.n_points
+        )
         for tile in scan.iter_features():
             assert np.all(np.diff(tile.point_indices) > 0)
             got[tile.point_indices] = tile.table.point_values()
             seen[tile.point_indices] = True
+            np.testing.assert_array_equal(tile.labels, scene.labels[tile.point_indices])
+            assert tile.xyz is not None
+            assert np.array_equal(tile.xyz, scene.xyz[tile.point_indices])
+        # without the points' positions: the same rows, the positions None
+        for tile in scan.iter_features(positions=False):
+            assert tile.xyz is None
+            assert np.array_equal(tile.table.point_values(), got[tile.point_indices])
             np.testing.assert_array_equal(tile.labels, scene.labels[tile.point_indices])
     assert seen.all()
     assert np.array_equal(got, expected)

@@ -4,9 +4,16 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from semantic3d.core.errors import ShapeError
-from semantic3d.features.pyramid import ExtentError, build_pyramid, grid_origin
+from semantic3d.features.pyramid import (
+    ExtentError,
+    build_pyramid,
+    build_pyramid_in_parts,
+    grid_origin,
+)
 
 
 def _cloud(n: int = 3000, seed: int = 0) -> np.ndarray:
@@ -184,3 +191,80 @@ def test_a_coordinate_that_is_not_a_number_is_rejected() -> None:
             n_levels=2,
             origin=grid_origin(xyz[0], coarsest_voxel_size_m=0.2),
         )
+
+
+def _assert_same_pyramid(got: object, expected: object) -> None:
+    """Every array of two pyramids equal bit for bit (and of one dtype)."""
+    assert np.array_equal(got.point_voxel, expected.point_voxel)  # type: ignore[attr-defined]
+    for level, want in zip(got.levels, expected.levels, strict=True):  # type: ignore[attr-defined]
+        assert level.voxel_size_m == want.voxel_size_m
+        for name in ("cells", "keys", "xyz", "attributes", "parent"):
+            a, b = getattr(level, name), getattr(want, name)
+            assert a.dtype == b.dtype and a.shape == b.shape, name
+            assert a.tobytes() == b.tobytes(), name  # bit for bit
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    n=st.integers(1, 6000),
+    cuts=st.lists(st.floats(0.0, 1.0), max_size=6),
+    with_attributes=st.booleans(),
+    threads=st.sampled_from([1, 3]),
+)
+def test_a_pyramid_built_a_part_at_a_time_is_the_whole_builds_bit_for_bit(
+    seed: int, n: int, cuts: list[float], with_attributes: bool, threads: int
+) -> None:
+    """Dense voxels (about 40 points each) cut across parts at any place, empty parts too:
+    each voxel's sums run on in input order from part to part, so every value is the
+    whole build's (sums restarted in each part and added would differ in the last bits)."""
+    from semantic3d.core.threads import thread_limit
+
+    rng = np.random.default_rng(seed)
+    side = max(1, round((n / 40) ** (1 / 3)))  # voxels of 0.05 m along each axis
+    # near the origin, every bit of a coordinate counts: sums round at every step
+    xyz = rng.uniform(0, 0.05 * side, (n, 3)) + np.array([10.0, 20.0, 5.0])
+    xyz[rng.random(n) < 0.1] *= 1.5  # some points far off in other voxels
+    attributes = rng.random((n, 2)) * 255 if with_attributes else None
+    origin = grid_origin(xyz[0], coarsest_voxel_size_m=0.8)
+    bounds = sorted({0, n, *(round(c * n) for c in cuts)})
+    with thread_limit(threads):
+        whole = build_pyramid(
+            xyz, base_voxel_size_m=0.05, n_levels=5, origin=origin, attributes=attributes
+        )
+        in_parts = build_pyramid_in_parts(
+            (
+                (xyz[a:b], None if attributes is None else attributes[a:b])
+                for a, b in zip([0, *bounds], bounds, strict=False)
+            ),
+            n_points=n,
+            base_voxel_size_m=0.05,
+            n_levels=5,
+            origin=origin,
+            n_attributes=0 if attributes is None else 2,
+        )
+    _assert_same_pyramid(in_parts, whole)
+
+
+def test_parts_of_another_size_or_shape_are_rejected() -> None:
+    xyz = _cloud(n=100)
+    origin = grid_origin(xyz[0], coarsest_voxel_size_m=0.8)
+
+    def build(parts: list, n_points: int = 100, n_attributes: int = 0) -> object:
+        return build_pyramid_in_parts(
+            parts,
+            n_points=n_points,
+            base_voxel_size_m=0.05,
+            n_levels=3,
+            origin=origin,
+            n_attributes=n_attributes,
+        )
+
+    with pytest.raises(ShapeError, match="expected 100 points, found 60"):
+        build([(xyz[:60], None)])
+    with pytest.raises(ShapeError, match="expected 50 points, found more"):
+        build([(xyz[:40], None), (xyz[40:], None)], n_points=50)
+    with pytest.raises(ShapeError, match=r"expected an \(n, 3\) part"):
+        build([(xyz[:, :2], None)])
+    with pytest.raises(ShapeError, match=r"attributes: expected \(100, 2\), found \(100, 1\)"):
+        build([(xyz, np.zeros((100, 1)))], n_attributes=2)

@@ -422,3 +422,78 @@ def test_tiles_read_on_many_threads_while_the_maps_are_reopened(
     for thread in threads:
         thread.join()
     assert not failures, failures[0]
+
+
+def test_a_tiles_core_comes_in_parts_in_scan_order(tmp_path: Path) -> None:
+    cloud = _cloud(5_000)
+    store = build_tile_store(_chunks(cloud, 700), tmp_path / "store", grid=TileGrid.square(2.0))
+    for part_points in (1, 7, 100, 10_000):
+        for tile in store.tiles:
+            parts = list(store.iter_core_parts(tile, part_points))
+            assert all(part.n_points == part_points for part in parts[:-1])
+            assert 0 < parts[-1].n_points <= part_points
+            whole = store.read_core(tile)
+            np.testing.assert_array_equal(
+                np.concatenate([part.indices for part in parts]), whole.indices
+            )
+            assert PointCloud.concatenate([part.cloud for part in parts]).equals(whole.cloud)
+    assert list(store.iter_core_parts((99, 99), 10)) == []
+    with pytest.raises(ShapeError, match="part_points: expected at least 1, found 0"):
+        next(store.iter_core_parts(store.tiles[0], 0))
+
+
+def _mapped_after_a_large_tile(folder: str, remap_bytes: int) -> dict[str, int]:
+    """A store whose one tile holds 400 k points (16 MB), maps reopened every
+    ``remap_bytes``: the store file's resident KiB after the tile was read whole and let
+    go of, and at worst while it was read in parts."""
+    import semantic3d.spatial.store as store_module
+
+    store_module.REMAP_BYTES = remap_bytes
+    cloud = _cloud(400_000, extent=0.9)
+    grid = TileGrid(origin_xy=(-1.0, -1.0), cell_size_m=2.0)
+    store = build_tile_store(_chunks(cloud, 50_000), Path(folder) / "s", grid=grid)
+    points_file = Path(folder) / "s" / "points.npy"
+    (tile,) = store.tiles
+    core = store.read_core(tile).copied()
+    read_whole = mapped_kib(points_file)
+    del core
+    after_whole = mapped_kib(points_file)
+    worst_parts = 0
+    for part in store.iter_core_parts(tile, 10_000):
+        part.copied()
+        worst_parts = max(worst_parts, mapped_kib(points_file))
+    return {
+        "file_kib": points_file.stat().st_size >> 10,
+        "read_whole": read_whole,
+        "after_whole": after_whole,
+        "worst_parts": worst_parts,
+    }
+
+
+@pytest.mark.skipif(not Path("/proc/self/smaps").is_file(), reason="needs Linux's smaps")
+def test_a_tile_larger_than_the_remap_period_is_let_go_of_with_its_points(tmp_path: Path) -> None:
+    """A read of more than REMAP_BYTES gets maps of its own: once its points are let go
+    of, none of the tile's pages stays in the process's memory (the store's kept maps
+    held the densest tile's gigabyte until the next read); read in parts, a tile holds
+    about the remap period. In a fresh process, as the test above."""
+    import json
+    import subprocess
+    import sys
+
+    code = (
+        "import json; from tests.spatial.test_store import _mapped_after_a_large_tile; "
+        f"print(json.dumps(_mapped_after_a_large_tile({str(tmp_path)!r}, 1 << 20)))"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=Path(__file__).resolve().parents[2],
+    )
+    assert done.returncode == 0, done.stderr
+    found = json.loads(done.stdout.strip().splitlines()[-1])
+    assert found["file_kib"] > 15 << 10
+    assert found["read_whole"] > 15 << 10  # the whole tile was read through a map
+    assert found["after_whole"] == 0
+    assert found["worst_parts"] < 6 << 10  # KiB: about the 1 MiB period, not the 16 MB tile

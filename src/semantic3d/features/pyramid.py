@@ -20,7 +20,9 @@ in parallel, each voxel's sum alone), with the same results on any number of thr
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
+from typing import Any
 
 import numba
 import numpy as np
@@ -28,6 +30,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from semantic3d.core.errors import ShapeError
 from semantic3d.spatial.voxels import (
+    CELL_BITS,
+    CELL_OFFSET,
     ExtentError,
     compute_cells,
     grid_origin,
@@ -38,9 +42,11 @@ from semantic3d.spatial.voxels import (
 
 __all__ = [
     "ExtentError",
+    "PointParts",
     "PyramidLevel",
     "VoxelPyramid",
     "build_pyramid",
+    "build_pyramid_in_parts",
     "compute_cells",
     "grid_origin",
     "pack_keys",
@@ -146,6 +152,172 @@ def build_pyramid(
         points, anchor, values, cells, keys, order, starts, point_voxel
     )
 
+    return VoxelPyramid(
+        origin=anchor,
+        levels=_stacked_levels(
+            level_xyz, level_values, level_cells, level_keys, base_voxel_size_m, n_levels
+        ),
+        point_voxel=point_voxel,
+    )
+
+
+PointParts = Iterable[tuple[NDArray[np.float64], NDArray[np.float64] | None]]
+"""Points in parts, in input order: ``(xyz, attributes or None)`` of each part."""
+
+
+def build_pyramid_in_parts(
+    parts: PointParts,
+    *,
+    n_points: int,
+    base_voxel_size_m: float,
+    n_levels: int,
+    origin: ArrayLike,
+    n_attributes: int = 0,
+) -> VoxelPyramid:
+    """The pyramid :func:`build_pyramid` gives for ``parts`` put end to end (bit for bit),
+    holding one part's points at a time: memory is a part's points, the level-0 voxels
+    and each point's voxel (8 bytes a point), not the ~110 bytes a point of the whole
+    build.
+
+    Each part's points are sorted into runs of one voxel (as the whole build sorts them);
+    a voxel met for the first time gets the next slot of running sums, and a run is added
+    to its voxel's sums in input order, part after part, as the whole build sums it, so
+    every value is the same. The slots are put in key order at the end.
+
+    Raises:
+        ShapeError: the parts hold another number of points than ``n_points``, or
+            attributes of another shape than ``(n, n_attributes)``.
+    """
+    anchor = np.asarray(origin, dtype=np.float64).reshape(3)
+    known_keys = np.empty(0, np.int64)  # the voxels met so far, sorted, and their slots
+    known_slots = np.empty(0, np.int64)
+    capacity = 1 << 16
+    totals = np.zeros((capacity, 3), np.float64)
+    value_totals = np.zeros((capacity, n_attributes), np.float64)
+    counts = np.zeros(capacity, np.int64)
+    point_slot = np.empty(n_points, np.int64)
+    at = 0
+    for xyz, attributes in parts:
+        points = np.ascontiguousarray(xyz, dtype=np.float64)
+        if points.ndim != 2 or points.shape[1] != 3:
+            raise ShapeError(f"xyz: expected an (n, 3) part, found shape {points.shape}")
+        n = points.shape[0]
+        values = (
+            np.empty((n, 0), np.float64)
+            if attributes is None
+            else np.ascontiguousarray(attributes, dtype=np.float64)
+        )
+        if values.ndim == 1:
+            values = values.reshape(-1, 1)
+        if values.shape != (n, n_attributes):
+            raise ShapeError(f"attributes: expected ({n}, {n_attributes}), found {values.shape}")
+        if at + n > n_points:
+            raise ShapeError(f"parts: expected {n_points} points, found more")
+        if n == 0:
+            continue
+        keys = pack_keys(compute_cells(points, origin=anchor, voxel_size_m=base_voxel_size_m))
+        order = key_order(keys)
+        starts = key_runs(keys, order)
+        known_keys, known_slots, run_slot = _merged_keys(
+            known_keys, known_slots, keys[order[starts[:-1]]]
+        )
+        if known_keys.size > capacity:  # room for the new voxels' sums
+            capacity = max(known_keys.size, 2 * capacity)
+            totals = _grown(totals, capacity)
+            value_totals = _grown(value_totals, capacity)
+            counts = _grown(counts, capacity)
+        _add_runs(
+            points,
+            anchor,
+            values,
+            order,
+            starts,
+            run_slot,
+            totals,
+            value_totals,
+            counts,
+            point_slot[at : at + n],
+        )
+        at += n
+    if at != n_points:
+        raise ShapeError(f"parts: expected {n_points} points, found {at}")
+    n_voxels = known_keys.size
+    voxel_of_slot = np.empty(n_voxels, np.int64)
+    voxel_of_slot[known_slots] = np.arange(n_voxels, dtype=np.int64)
+    point_voxel = _gathered(voxel_of_slot, point_slot)  # in place of the slots
+    level_counts = counts[known_slots]
+    level_xyz = totals[known_slots] / level_counts[:, None]
+    level_values = value_totals[known_slots] / level_counts[:, None]
+    return VoxelPyramid(
+        origin=anchor,
+        levels=_stacked_levels(
+            level_xyz, level_values, _unpacked(known_keys), known_keys, base_voxel_size_m, n_levels
+        ),
+        point_voxel=point_voxel,
+    )
+
+
+def _grown(values: NDArray[Any], capacity: int) -> NDArray[Any]:
+    """``values`` with zero rows appended up to ``capacity`` rows."""
+    grown = np.zeros((capacity, *values.shape[1:]), values.dtype)
+    grown[: values.shape[0]] = values
+    return grown
+
+
+@numba.njit(cache=True, nogil=True)
+def _merged_keys(
+    known_keys: NDArray[np.int64], known_slots: NDArray[np.int64], run_keys: NDArray[np.int64]
+) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:  # pragma: no cover
+    """Merge the sorted distinct ``run_keys`` into the sorted distinct ``known_keys`` (one
+    linear walk): the merged keys, their slots (a key not known takes the next slot, in
+    key order) and the slot of every run key."""
+    n_known = known_keys.size
+    n_runs = run_keys.size
+    merged = np.empty(n_known + n_runs, np.int64)
+    slots = np.empty(n_known + n_runs, np.int64)
+    run_slot = np.empty(n_runs, np.int64)
+    next_slot = n_known
+    i = j = k = 0
+    while i < n_known or j < n_runs:
+        if j == n_runs or (i < n_known and known_keys[i] < run_keys[j]):
+            merged[k] = known_keys[i]
+            slots[k] = known_slots[i]
+            i += 1
+        elif i < n_known and known_keys[i] == run_keys[j]:
+            merged[k] = known_keys[i]
+            slots[k] = known_slots[i]
+            run_slot[j] = known_slots[i]
+            i += 1
+            j += 1
+        else:
+            merged[k] = run_keys[j]
+            slots[k] = next_slot
+            run_slot[j] = next_slot
+            next_slot += 1
+            j += 1
+        k += 1
+    return merged[:k].copy(), slots[:k].copy(), run_slot
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _gathered(
+    table: NDArray[np.int64], index: NDArray[np.int64]
+) -> NDArray[np.int64]:  # pragma: no cover - compiled
+    """``table[index]`` on every thread, written over ``index``."""
+    for i in numba.prange(index.size):
+        index[i] = table[index[i]]
+    return index
+
+
+def _stacked_levels(
+    level_xyz: NDArray[np.float64],
+    level_values: NDArray[np.float64],
+    level_cells: NDArray[np.int64],
+    level_keys: NDArray[np.int64],
+    base_voxel_size_m: float,
+    n_levels: int,
+) -> tuple[PyramidLevel, ...]:
+    """Level 0 (given) and the levels above it, each the voxel-grid filter of the one below."""
     levels: list[PyramidLevel] = []
     size = base_voxel_size_m
     no_shift = np.zeros(3, np.float64)
@@ -166,7 +338,56 @@ def build_pyramid(
             level_xyz, no_shift, level_values, parent_cells, parent_keys, order, starts, parent
         )
         size *= 2.0
-    return VoxelPyramid(origin=anchor, levels=tuple(levels), point_voxel=point_voxel)
+    return tuple(levels)
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _unpacked(keys: NDArray[np.int64]) -> NDArray[np.int64]:  # pragma: no cover - compiled
+    """The ``(n, 3)`` cells packed in ``keys`` (:func:`pack_keys` undone)."""
+    mask = (1 << CELL_BITS) - 1
+    cells = np.empty((keys.size, 3), np.int64)
+    for i in numba.prange(keys.size):
+        key = keys[i]
+        cells[i, 0] = (key >> (2 * CELL_BITS)) - CELL_OFFSET
+        cells[i, 1] = ((key >> CELL_BITS) & mask) - CELL_OFFSET
+        cells[i, 2] = (key & mask) - CELL_OFFSET
+    return cells
+
+
+# Hand-written for the reason of _describe_runs below: each voxel's sums run in input order.
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _add_runs(
+    xyz: NDArray[np.float64],
+    shift: NDArray[np.float64],
+    values: NDArray[np.float64],
+    order: NDArray[np.int64],
+    starts: NDArray[np.int64],
+    run_voxel: NDArray[np.int64],
+    totals: NDArray[np.float64],
+    value_totals: NDArray[np.float64],
+    counts: NDArray[np.int64],
+    member_voxel: NDArray[np.int64],
+) -> None:  # pragma: no cover - compiled
+    """Add the runs ``order[starts[i]:starts[i+1]]`` of a part's rows to the running sums
+    of their voxels ``run_voxel[i]`` (``xyz - shift`` and ``values``, in run order; a
+    voxel has one run a part), count them and set ``member_voxel[row]``."""
+    for run in numba.prange(starts.size - 1):
+        begin = starts[run]
+        end = starts[run + 1]
+        voxel = run_voxel[run]
+        for i in range(begin, end):
+            member_voxel[order[i]] = voxel
+        for column in range(3):
+            total = totals[voxel, column]
+            for i in range(begin, end):
+                total += xyz[order[i], column] - shift[column]
+            totals[voxel, column] = total
+        for column in range(values.shape[1]):
+            total = value_totals[voxel, column]
+            for i in range(begin, end):
+                total += values[order[i], column]
+            value_totals[voxel, column] = total
+        counts[voxel] += end - begin
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)

@@ -129,12 +129,17 @@ def map_scan_features(
                     )
                     return function(block)
 
+                # a block carries no positions: a tile's are not copied (24 bytes a point)
                 if n_threads == 1:
-                    for tile in scan.iter_features(select=select, row_map=row_map):
+                    for tile in scan.iter_features(select=select, row_map=row_map, positions=False):
                         yield describe(tile)
                 else:
                     yield from scan.map_tiles(
-                        describe, select=select, n_threads=n_threads, row_map=row_map
+                        describe,
+                        select=select,
+                        n_threads=n_threads,
+                        row_map=row_map,
+                        positions=False,
                     )
             return
     if held_points == 0:

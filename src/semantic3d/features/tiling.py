@@ -18,8 +18,11 @@ order of :mod:`~semantic3d.features.neighbourhoods`, rows are bit-for-bit those 
 :func:`~semantic3d.features.multiscale.compute_multiscale_features`.
 
 Peak memory is set by the tiles described at once (the largest, as many as the threads
-allow) and their halos, not by the scan size; disk use is about 44 bytes per point plus
-the pyramids.
+allow) and their halos: their level voxels, and about 17 bytes a point of theirs (scan
+positions, point-to-voxel map, labels). A tile's pyramid is built
+:data:`PYRAMID_PART_POINTS` points at a time and its points' positions are copied only
+when asked for, so the densest tile of a scan, which grows with the scan, holds no more;
+disk use is about 44 bytes per point plus the pyramids.
 """
 
 from __future__ import annotations
@@ -77,7 +80,7 @@ from semantic3d.features.multiscale import (
     reach_of_kth,
 )
 from semantic3d.features.neighbourhoods import LevelIndex, kth_squared_distances
-from semantic3d.features.pyramid import build_pyramid, grid_origin
+from semantic3d.features.pyramid import build_pyramid, build_pyramid_in_parts, grid_origin
 from semantic3d.spatial.grid import TileGrid, TileKey
 from semantic3d.spatial.store import TilePoints, TileStore, build_tile_store
 from semantic3d.spatial.voxels import CELL_BITS, CELL_OFFSET
@@ -104,6 +107,12 @@ levels, forest rows and graph grow with its voxels, not its points: on one threa
 10 M-point street scan's densest tile held 68 % of the points and 40 % of the time, and
 level-0 voxels plus 1/40 a point gave each of its large tiles' time within 15 % (points
 alone: off by up to 70 %). It only shares threads out among tiles, never changes a row."""
+
+PYRAMID_PART_POINTS = 1 << 21
+"""A tile of more points builds its pyramid this many points at a time
+(:func:`~semantic3d.features.pyramid.build_pyramid_in_parts`: the same pyramid, ~110
+bytes a point of the part held instead of the tile's; the densest tile grows with the
+scan: 68 % of a 10 M-point street scan's points)."""
 
 _PARTS_PER_THREAD = 4
 """A large tile level's queries are computed in up to this many parts a thread."""
@@ -202,14 +211,15 @@ class TileFeatures:
         point_indices: ``(m,)`` int64 indices of the points in the whole scan, ascending.
         table: rows for those points (``table.point_row`` aligned with ``point_indices``).
         labels: ``(m,)`` uint8 label values when the chunks carried labels, else None.
-        xyz: ``(m, 3)`` float64 absolute positions of those points.
+        xyz: ``(m, 3)`` float64 absolute positions of those points (None when not asked
+            for: :meth:`TiledScan.tile_features`).
     """
 
     tile: Tile
     point_indices: NDArray[np.int64]
     table: FeatureTable
     labels: NDArray[np.uint8] | None
-    xyz: NDArray[np.float64]
+    xyz: NDArray[np.float64] | None
 
 
 def _gather_level_columns(
@@ -405,14 +415,31 @@ class TiledScan:
 
     def _build_pyramid_of(self, tile: Tile, n_threads: int) -> list[int]:
         config = self.config
-        points = self._load_points(tile).copied()  # contiguous, copied on every thread
-        pyramid = build_pyramid(
-            points.cloud.xyz,
-            base_voxel_size_m=config.base_voxel_size_m,
-            n_levels=config.n_levels,
-            origin=self.origin,
-            attributes=self._attributes(points),
-        )
+        n_points = self.store.count(tile)
+        if n_points > PYRAMID_PART_POINTS:  # a part's points at a time
+            n_attributes = 3 * config.colour + config.intensity
+
+            pyramid = build_pyramid_in_parts(
+                (  # contiguous coordinates, copied on every thread
+                    (part.copied().cloud.xyz, self._attributes(part))
+                    for part in self.store.iter_core_parts(tile, PYRAMID_PART_POINTS)
+                ),
+                n_points=n_points,
+                base_voxel_size_m=config.base_voxel_size_m,
+                n_levels=config.n_levels,
+                origin=self.origin,
+                n_attributes=n_attributes,
+            )
+        else:
+            points = self._load_points(tile).copied()  # contiguous, copied on every thread
+            pyramid = build_pyramid(
+                points.cloud.xyz,
+                base_voxel_size_m=config.base_voxel_size_m,
+                n_levels=config.n_levels,
+                origin=self.origin,
+                attributes=self._attributes(points),
+            )
+            del points
         # level by level, one after another in the tile's file: a level described whole,
         # or a halo, reads its level alone
         parts: list[_TileLevel | NDArray[np.int64]] = [
@@ -501,7 +528,11 @@ class TiledScan:
 
     # -- pass 3: features ------------------------------------------------------------------
     def iter_features(
-        self, *, select: ArrayLike | None = None, row_map: RowMap | None = None
+        self,
+        *,
+        select: ArrayLike | None = None,
+        row_map: RowMap | None = None,
+        positions: bool = True,
     ) -> Iterator[TileFeatures]:
         """Feature rows tile by tile (tiles in sorted order, points ascending inside).
 
@@ -509,10 +540,11 @@ class TiledScan:
             select: global indices of the points to describe (default all); tiles without
                 a selected point are skipped.
             row_map: map each tile's rows as they are made (:meth:`tile_features`).
+            positions: give the points' positions (:meth:`tile_features`).
         """
         wanted = None if select is None else np.unique(np.asarray(select, dtype=np.int64))
         for tile in self.tiles:
-            features = self.tile_features(tile, select=wanted, row_map=row_map)
+            features = self.tile_features(tile, select=wanted, row_map=row_map, positions=positions)
             if features is not None:
                 yield features
 
@@ -522,6 +554,7 @@ class TiledScan:
         *,
         select: NDArray[np.int64] | None = None,
         row_map: RowMap | None = None,
+        positions: bool = True,
     ) -> TileFeatures | None:
         """Feature rows of one tile (its points ascending), None when none is selected.
 
@@ -537,22 +570,30 @@ class TiledScan:
                 table (a million-row tile's table is 600 MB at the default 153 columns):
                 the table's :attr:`~semantic3d.features.multiscale.FeatureTable.mapped`
                 holds the results, its ``values`` no columns.
+            positions: give the points' positions (:attr:`TileFeatures.xyz`; else None,
+                and a tile of voxel rows copies only its points' indices and labels).
         """
         points = self._load_points(tile)
+        xyz: NDArray[np.float64] | None
         if select is None:  # every point: one copy of the columns, on every thread
             if points.n_points == 0:
                 return None
-            points = points.copied()
-            labels, xyz, indices = points.cloud.labels, points.cloud.xyz, points.indices
-            local = None
+            # rows of voxels need not the points' positions
+            copied = positions or self.config.per_point
+            points = points.copied(positions=copied)
+            labels, indices, local = points.cloud.labels, points.indices, None
+            xyz = points.cloud.xyz if copied else None
         else:
             keep = np.isin(points.indices, select, assume_unique=True)
             if not keep.any():
                 return None
             labels = points.cloud.labels[keep] if points.cloud.labels is not None else None
             xyz, indices, local = points.cloud.xyz[keep], points.indices[keep], np.flatnonzero(keep)
+        # the store's pages of the tile (44 bytes a point) are let go of before the rows
+        # are made, which takes the tile's longest
+        del points
         table = self._tile_table(tile, xyz, local, row_map)
-        return TileFeatures(tile, indices, table, labels, xyz)
+        return TileFeatures(tile, indices, table, labels, xyz if positions else None)
 
     def share(self) -> None:
         """Compute what every tile shares once and save it in the scratch folder.
@@ -621,6 +662,7 @@ class TiledScan:
         select: ArrayLike | None = None,
         n_threads: int | None = None,
         row_map: RowMap | None = None,
+        positions: bool = True,
     ) -> Iterator[R]:
         """``function(features)`` for every tile with a selected point, tiles at the same time.
 
@@ -636,7 +678,7 @@ class TiledScan:
         threads to the end. Tiles of less than a thread's share run one thread each,
         beside the large tiles on the threads their work earns together, not all after
         them. With ``row_map`` each tile's rows are mapped as they are made
-        (:meth:`tile_features`), on the tile's threads.
+        (:meth:`tile_features`), on the tile's threads; ``positions``: as there.
         """
         wanted = None if select is None else np.unique(np.asarray(select, dtype=np.int64))
         n_threads = thread_budget() if n_threads is None else max(1, int(n_threads))
@@ -656,7 +698,9 @@ class TiledScan:
                 threads=threads_of(tile),
             ):
                 with span("features", threads=thread_budget()):
-                    features = self.tile_features(tile, select=wanted, row_map=row_map)
+                    features = self.tile_features(
+                        tile, select=wanted, row_map=row_map, positions=positions
+                    )
                 return (False, None) if features is None else (True, function(features))
 
         self._cache_scale = n_threads
@@ -706,7 +750,7 @@ class TiledScan:
     def _tile_table(
         self,
         tile: Tile,
-        xyz: NDArray[np.float64],
+        xyz: NDArray[np.float64] | None,
         local: NDArray[np.int64] | None,
         row_map: RowMap | None = None,
     ) -> FeatureTable:
@@ -717,6 +761,7 @@ class TiledScan:
         config = self.config
         width = len(config.level_feature_names)
         if config.per_point:
+            assert xyz is not None
             queries = xyz - self.origin
             values = np.empty((queries.shape[0], config.n_features), np.float32)
             for number in range(config.n_levels):
@@ -729,7 +774,12 @@ class TiledScan:
             return table if row_map is None else map_table_rows(table, row_map)
         levels = [self._level(tile, number) for number in range(config.n_levels)]  # held
         point_voxels = self._point_voxels(tile)
-        voxels, point_row = distinct_voxels(point_voxels if local is None else point_voxels[local])
+        if local is None:  # every level-0 voxel holds points of the tile: rows are voxels
+            voxels = np.arange(levels[0].n_voxels, dtype=np.int64)
+            point_row = point_voxels.view()  # not a copy of 8 bytes a point
+            point_row.flags.writeable = False
+        else:
+            voxels, point_row = distinct_voxels(point_voxels[local])
         # the table whole, or (with row_map) only each level's distinct rows: a row's
         # columns of level n are ``rows[index[row]]`` of its source (index None: in order)
         table_values = (

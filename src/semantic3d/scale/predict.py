@@ -141,7 +141,7 @@ def label_tile(scan_folder: str, scan_state: bytes, model_path: str, tile: TileK
     if features is None:
         return np.empty(0, np.int64), np.empty(0, np.uint8)
     table = features.table
-    assert table.mapped is not None
+    assert table.mapped is not None and features.xyz is not None
     row_xyz = None
     if model.needs_row_positions(table):
         # positions relative to the grid origin, as in one process

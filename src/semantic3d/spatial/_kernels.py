@@ -277,12 +277,14 @@ def copy_columns(
     out_index: np.ndarray,
 ) -> None:  # pragma: no cover - compiled
     """Contiguous copies of the strided columns of packed records, on every thread
-    (``labels`` empty: no labels to copy)."""
+    (``labels`` empty: no labels to copy; ``out_xyz`` empty: no coordinates)."""
     with_labels = labels.shape[0] > 0
-    for i in nb.prange(xyz.shape[0]):
-        out_xyz[i, 0] = xyz[i, 0]
-        out_xyz[i, 1] = xyz[i, 1]
-        out_xyz[i, 2] = xyz[i, 2]
+    with_xyz = out_xyz.shape[0] > 0
+    for i in nb.prange(index.shape[0]):
+        if with_xyz:
+            out_xyz[i, 0] = xyz[i, 0]
+            out_xyz[i, 1] = xyz[i, 1]
+            out_xyz[i, 2] = xyz[i, 2]
         out_index[i] = index[i]
         if with_labels:
             out_labels[i] = labels[i]

@@ -135,15 +135,15 @@ class TilePoints:
         )
         return cls(cloud, column("index"))
 
-    def copied(self) -> TilePoints:
+    def copied(self, *, positions: bool = True) -> TilePoints:
         """Private contiguous copies of the coordinates, labels and indices (intensity and
         colours stay as they are), copied on every thread: numpy copies a strided column
-        on one thread."""
+        on one thread. ``positions=False`` leaves the coordinates as they are too."""
         from semantic3d.spatial._kernels import copy_columns
 
         cloud = self.cloud
         n = cloud.n_points
-        xyz = np.empty((n, 3), np.float64)
+        xyz = np.empty((n if positions else 0, 3), np.float64)
         labels = None if cloud.labels is None else np.empty(n, np.uint8)
         indices = np.empty(n, np.int64)
         copy_columns(
@@ -154,7 +154,10 @@ class TilePoints:
             np.empty(0, np.uint8) if labels is None else labels,
             indices,
         )
-        return TilePoints(PointCloud(xyz, cloud.intensity, cloud.rgb, labels), indices)
+        return TilePoints(
+            PointCloud(xyz if positions else cloud.xyz, cloud.intensity, cloud.rgb, labels),
+            indices,
+        )
 
 
 def xyz_label_rows(points: TilePoints) -> NDArray[np.float64]:
@@ -288,33 +291,41 @@ class TileStore:
         ``touching`` records; opened anew after every :data:`REMAP_BYTES` read, so that the
         pages read stop counting as this process's memory once nothing holds them (a
         mapping keeps every page it was read through resident: the whole store, in the
-        end). Safe on several threads at once: a thread reopening the maps does not
-        take them from under another (the maps it returns stay valid while held)."""
+        end). A read of more than that gets maps of its own, let go of with the arrays
+        read through them (a scan's densest tile is a gigabyte of pages, which the maps
+        kept would hold until the next read). Safe on several threads at once: a thread
+        reopening the maps does not take them from under another (the maps it returns
+        stay valid while held)."""
         with self._maps_lock:
             if self.directory is not None:
+                if touching * self._dtype.itemsize > REMAP_BYTES:
+                    return self._opened()
                 self._read_bytes += touching * self._dtype.itemsize
                 if self._read_bytes > REMAP_BYTES:
                     self._points = self._order = None
                     self._read_bytes = touching * self._dtype.itemsize
-            if self._points is not None and self._order is not None:
-                return self._points, self._order
-            folder = self._folder()
-            try:
-                # Plain arrays over the maps: slicing a np.memmap subclass costs ~10 µs.
-                points = np.asarray(np.load(folder / POINTS_FILE, mmap_mode="r"))
-                order = np.asarray(np.load(folder / ORDER_FILE, mmap_mode="r"))
-            except (OSError, ValueError) as exc:
-                raise DataFormatError(
-                    f"expected the store's point files, found {exc}", path=str(folder)
-                ) from exc
-            if points.shape != (self.n_points,) or points.dtype != self._dtype:
-                raise DataFormatError(
-                    f"expected {self.n_points} records of {self._dtype}, found "
-                    f"{points.shape} {points.dtype}",
-                    path=str(folder / POINTS_FILE),
-                )
-            self._points, self._order = points, order
-            return points, order
+            if self._points is None or self._order is None:
+                self._points, self._order = self._opened()
+            return self._points, self._order
+
+    def _opened(self) -> tuple[NDArray[Any], NDArray[np.int32]]:
+        """New memory maps of the points and of the sub-cell order."""
+        folder = self._folder()
+        try:
+            # Plain arrays over the maps: slicing a np.memmap subclass costs ~10 µs.
+            points = np.asarray(np.load(folder / POINTS_FILE, mmap_mode="r"))
+            order = np.asarray(np.load(folder / ORDER_FILE, mmap_mode="r"))
+        except (OSError, ValueError) as exc:
+            raise DataFormatError(
+                f"expected the store's point files, found {exc}", path=str(folder)
+            ) from exc
+        if points.shape != (self.n_points,) or points.dtype != self._dtype:
+            raise DataFormatError(
+                f"expected {self.n_points} records of {self._dtype}, found "
+                f"{points.shape} {points.dtype}",
+                path=str(folder / POINTS_FILE),
+            )
+        return points, order
 
     def __reduce__(self) -> tuple[Any, tuple[str]]:
         return (TileStore, (str(self._folder()),))
@@ -365,6 +376,22 @@ class TileStore:
         if tile not in self._row:
             return TilePoints.from_records(np.empty(0, self._dtype))
         return TilePoints.from_records(self._records(tile)[0])
+
+    def iter_core_parts(self, tile: TileKey, part_points: int) -> Iterator[TilePoints]:
+        """The points of ``tile`` in the order they were streamed, ``part_points`` at a
+        time: a part's pages of the store stay resident only until the next
+        :data:`REMAP_BYTES` have been read, so a tile of any size is read in bounded
+        memory (:meth:`read_core` holds the whole tile's while its points are held)."""
+        if part_points < 1:
+            raise ShapeError(f"part_points: expected at least 1, found {part_points}")
+        row = self._row.get(tile)
+        if row is None:
+            return
+        begin, end = int(self._starts[row]), int(self._starts[row + 1])
+        for start in range(begin, end, part_points):
+            stop = min(end, start + part_points)
+            points, _ = self._arrays(stop - start)
+            yield TilePoints.from_records(points[start:stop])
 
     def read_halo(self, tile: TileKey, halo_m: float) -> TilePoints:
         """Points of the other tiles within ``halo_m`` of ``tile``'s rectangle (edges included).

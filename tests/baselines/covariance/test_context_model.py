@@ -260,7 +260,6 @@ def test_rows_take_the_tile_and_square_of_their_last_point(tmp_path) -> None:  #
             cells[picked] = cells[source[point_row]]
             (tmp_path / "tiles.i64").write_bytes(tiles.tobytes())
             (tmp_path / "cells.u16").write_bytes(cells.tobytes())
-            positions._files = None
         row_tile, row_cell = positions.row_places(picked, point_row, n_rows)
         expected_tile = np.zeros(n_rows, np.int64)
         expected_tile[point_row] = tiles[picked]
@@ -268,3 +267,21 @@ def test_rows_take_the_tile_and_square_of_their_last_point(tmp_path) -> None:  #
         expected_cell[point_row] = cells[picked]
         np.testing.assert_array_equal(row_tile, expected_tile)
         np.testing.assert_array_equal(row_cell, expected_cell)
+
+
+@pytest.mark.parametrize("threads", [1, 2, 8])
+@pytest.mark.parametrize("n_rows", [1, 7, 3_000])
+def test_a_rows_last_point_is_found_on_any_number_of_threads(threads: int, n_rows: int) -> None:
+    """Passes race only to raise a row's point: the result is the largest point of each
+    row (-1 without points), what a sequential pass gives, for any threads."""
+    from semantic3d.baselines.covariance._context_kernels import last_points
+    from semantic3d.core.threads import thread_limit
+
+    rng = np.random.default_rng(n_rows)
+    point_row = rng.integers(0, n_rows, 200_000)
+    point_row[-5:] = 0  # the last points in one row
+    expected = np.full(n_rows + 2, -1, np.int64)
+    expected[point_row] = np.arange(point_row.size)
+    with thread_limit(threads):
+        np.testing.assert_array_equal(last_points(point_row, n_rows + 2), expected)
+    assert last_points(np.empty(0, np.int64), 3).tolist() == [-1, -1, -1]

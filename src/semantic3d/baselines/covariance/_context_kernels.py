@@ -266,24 +266,19 @@ def all_equal(values: np.ndarray) -> bool:  # pragma: no cover - compiled
 
 
 @nb.njit(cache=True, nogil=True, parallel=True)
-def row_places(
-    tiles: np.ndarray,
-    cells: np.ndarray,
-    point_indices: np.ndarray,
-    point_row: np.ndarray,
-    row_tile: np.ndarray,
-    row_cell: np.ndarray,
-) -> bool:  # pragma: no cover - compiled
-    """``row_tile[point_row] = tiles[point_indices]`` and the same for cells, on every
-    thread; True when every row's points agree (the result is then numpy's, whichever
-    point wrote last), False when some row's do not (numpy's last-wins then decides)."""
-    m = point_indices.shape[0]
-    for i in nb.prange(m):
-        row_tile[point_row[i]] = tiles[point_indices[i]]
-        row_cell[point_row[i]] = cells[point_indices[i]]
-    differ = 0
-    for i in nb.prange(m):
-        row = point_row[i]
-        if row_tile[row] != tiles[point_indices[i]] or row_cell[row] != cells[point_indices[i]]:
-            differ += 1
-    return differ == 0
+def last_points(point_row: np.ndarray, n_rows: int) -> np.ndarray:  # pragma: no cover
+    """The last point of every row (``-1`` for a row without points): where numpy's
+    ``row[point_row] = ...`` leaves each row's value from. On every thread: each pass
+    raises a row's point to any later point of the row seen, until a pass raises none
+    (a row's value is then the largest of its points: passes race only to raise it, and
+    end in the same values whatever the threads)."""
+    last = np.full(n_rows, -1, np.int64)
+    raised = 1
+    while raised:
+        raised = 0
+        for i in nb.prange(point_row.shape[0]):
+            row = point_row[i]
+            if last[row] < i:
+                last[row] = i
+                raised += 1
+    return last

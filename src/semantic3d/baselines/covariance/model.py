@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import logging
 import math
-import threading
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -337,10 +336,7 @@ class _PositionFile:
     def __init__(self, folder: Path, config: CovarianceConfig) -> None:
         self.folder = folder
         self.config = config
-        self._files: tuple[NDArray[np.float32], NDArray[np.int64], NDArray[np.uint16]] | None
-        self._files = None
         self._complete = False
-        self._lock = threading.Lock()
 
     def record(self, chunks: Iterable[PointCloud]) -> Iterator[PointCloud]:
         """Pass ``chunks`` through, appending their positions, tiles and squares to the
@@ -388,34 +384,33 @@ class _PositionFile:
     def row_places(
         self, point_indices: NDArray[np.int64], point_row: NDArray[np.int64], n_rows: int
     ) -> tuple[NDArray[np.int64], NDArray[np.uint16]]:
-        """``(n_rows,)`` tile and square of every row: those of its points (``point_row``
-        the row of each of the given points; a row's last point decides, as numpy's
-        ``row_tile[point_row] = tiles`` would). Gathered and placed on every thread."""
-        from semantic3d.baselines.covariance._context_kernels import row_places
+        """``(n_rows,)`` tile and square of every row: those of its last point
+        (``point_row`` the row of each of the given points), as numpy's
+        ``row_tile[point_row] = tiles`` leaves them. Only each row's last point is read:
+        a row is a voxel, so a tile's rows are read, not its points."""
+        from semantic3d.baselines.covariance._context_kernels import last_points
 
         _, tiles, cells = self._open()
-        point_indices = np.ascontiguousarray(point_indices, dtype=np.int64)
-        point_row = np.ascontiguousarray(point_row, dtype=np.int64)
+        last = last_points(np.ascontiguousarray(point_row, dtype=np.int64), n_rows)
         row_tile = np.zeros(n_rows, np.int64)
         row_cell = np.zeros(n_rows, np.uint16)
-        if not row_places(
-            np.asarray(tiles), np.asarray(cells), point_indices, point_row, row_tile, row_cell
-        ):  # a row whose points disagree: numpy's assignment decides (the last point)
-            row_tile[point_row] = tiles[point_indices]
-            row_cell[point_row] = cells[point_indices]
+        placed = last >= 0
+        at = np.asarray(point_indices)[last[placed]]
+        row_tile[placed] = tiles[at]
+        row_cell[placed] = cells[at]
         return row_tile, row_cell
 
     def _open(self) -> tuple[NDArray[np.float32], NDArray[np.int64], NDArray[np.uint16]]:
+        """Maps of the files, new at every call: the pages a block reads leave the
+        process's memory with its maps (maps kept would hold every page read, 10 to 22
+        bytes a point of the scan, until the end)."""
         if not self._complete:
             raise RuntimeError(f"{self.folder}: read before the scan finished streaming")
-        with self._lock:  # tiles are labelled on several threads
-            if self._files is None:
-                self._files = (
-                    np.memmap(self.folder / "xyz.f32", dtype=np.float32, mode="r").reshape(-1, 3),
-                    np.memmap(self.folder / "tiles.i64", dtype=np.int64, mode="r"),
-                    np.memmap(self.folder / "cells.u16", dtype=np.uint16, mode="r"),
-                )
-            return self._files
+        return (
+            np.memmap(self.folder / "xyz.f32", dtype=np.float32, mode="r").reshape(-1, 3),
+            np.memmap(self.folder / "tiles.i64", dtype=np.int64, mode="r"),
+            np.memmap(self.folder / "cells.u16", dtype=np.uint16, mode="r"),
+        )
 
 
 def concurrent_scans_supported() -> bool:
