@@ -1,6 +1,7 @@
 """Throughput, memory and accuracy of the 3D covariance baseline, against the usual peers.
 
-Sections (``--only features,forest,predict,memory,accuracy,peers``; default all):
+Sections (``--only features,forest,predict,memory,density,accuracy,peers``; default all
+but density):
 
 - features: multi-scale features (pyramid + k-NN + eigen features) in points/s, against
   pgeof run level by level on the same pyramid (k-NN + its features), pgeof at one scale
@@ -12,6 +13,11 @@ Sections (``--only features,forest,predict,memory,accuracy,peers``; default all)
 - predict: end to end (read ASCII -> features -> classify -> write .labels), points/s, in
   memory and tiled.
 - memory: peak RSS of tiled prediction of 1x and 4x larger scans (subprocesses).
+- density: peak RSS and points/s of tiled prediction (a fresh process each, every core)
+  of one simulated street station sampled more and more densely (``--density-points``,
+  default 2.5, 5, 10 and 20 M points): the same scene, so the tiles near the scanner
+  grow with the scan, as a terrestrial scan's do; the growth in MiB a million points
+  between sizes. (Copies side by side, above, grow the tiles' number instead.)
 - accuracy: CMU Oakland (Munoz et al., CVPR 2009), train on 6 scans, validate on 4,
   per-class IoU, mIoU and OA for the multi-scale pyramid, single scales and per-point mode.
 - peers: end to end on a folder of scans in one process (read ASCII, features, classify,
@@ -292,6 +298,45 @@ def bench_memory(data: Path, model_path: Path) -> None:
             )
 
 
+def bench_density(model_path: Path, sizes: list[int]) -> None:
+    from semantic3d.datasets.simulator import simulate
+
+    print("\n== peak RSS of tiled prediction vs density (one simulated street station)")
+    before: tuple[int, float] | None = None
+    with tempfile.TemporaryDirectory() as tmp:
+        for n_points in sizes:
+            scan = simulate("street", out=Path(tmp) / f"s{n_points}", n_points=n_points, seed=1)
+            path = scan.scans[0]
+            code = (
+                f"import sys; sys.path.insert(0, {str(Path(__file__).resolve().parent)!r});"
+                "from _harness import peak_rss_mb;"
+                "from semantic3d.baselines.covariance.persistence import load_model;"
+                "from semantic3d.baselines.covariance.predict import predict_scan;"
+                f"m = load_model({str(model_path)!r});"
+                f"r = predict_scan(m, {str(path)!r}, out_path={str(path) + '.predicted'!r},"
+                f" workdir={tmp!r});"
+                "print(r.n_points, r.runtime_s, int(peak_rss_mb() * 1024))"
+            )
+            out = subprocess.run(
+                [sys.executable, "-c", code], capture_output=True, text=True, check=True
+            )
+            n, seconds, rss_kib = out.stdout.split()
+            rss_mib = int(rss_kib) / 1024
+            growth = (
+                ""
+                if before is None
+                else f", {(rss_mib - before[1]) / ((int(n) - before[0]) / 1e6):5.1f} MiB a "
+                "million points more"
+            )
+            print(
+                f"{int(n):>10d} points: {float(seconds):6.1f} s "
+                f"({int(n) / float(seconds) / 1e3:5.0f} k points/s), "
+                f"peak RSS {rss_mib:6.0f} MiB{growth}"
+            )
+            before = (int(n), rss_mib)
+            shutil.rmtree(path.parent)
+
+
 def bench_accuracy(data: Path) -> None:
     print("\n== accuracy on CMU Oakland (Munoz et al. 2009): train", TRAIN, "validate", VALIDATE)
     base = CovarianceConfig()
@@ -477,6 +522,13 @@ def main() -> None:
     parser.add_argument("--data", type=Path, default=DATA)
     parser.add_argument("--only", default="features,forest,predict,memory,accuracy,peers")
     parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument(
+        "--density-points",
+        type=int,
+        nargs="+",
+        default=[2_500_000, 5_000_000, 10_000_000, 20_000_000],
+        help="points of the simulated station for --only density",
+    )
     args = parser.parse_args()
     oakland = args.data / "oakland"
     if not oakland.is_dir():
@@ -505,6 +557,10 @@ def main() -> None:
         if not model_path.exists():
             bench_predict(oakland, 1, model_path)
         bench_memory(oakland, model_path)
+    if "density" in only:
+        if not model_path.exists():
+            bench_predict(oakland, 1, model_path)
+        bench_density(model_path, args.density_points)
     if "accuracy" in only:
         bench_accuracy(oakland)
     if "peers" in only:
