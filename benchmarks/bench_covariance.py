@@ -15,9 +15,9 @@ but density):
 - memory: peak RSS of tiled prediction of 1x and 4x larger scans (subprocesses).
 - density: peak RSS and points/s of tiled prediction (a fresh process each, every core)
   of one simulated street station sampled more and more densely (``--density-points``,
-  default 2.5, 5, 10 and 20 M points): the same scene, so the tiles near the scanner
-  grow with the scan, as a terrestrial scan's do; the growth in MiB a million points
-  between sizes. (Copies side by side, above, grow the tiles' number instead.)
+  default 5, 10, 20 and 40 M points; above 4 M, so tiled): the same scene, so the tiles
+  near the scanner grow with the scan, as a terrestrial scan's do; the growth in MiB a
+  million points between sizes. (Copies side by side, above, grow the tiles' number.)
 - accuracy: CMU Oakland (Munoz et al., CVPR 2009), train on 6 scans, validate on 4,
   per-class IoU, mIoU and OA for the multi-scale pyramid, single scales and per-point mode.
 - peers: end to end on a folder of scans in one process (read ASCII, features, classify,
@@ -305,8 +305,8 @@ def bench_density(model_path: Path, sizes: list[int]) -> None:
     before: tuple[int, float] | None = None
     with tempfile.TemporaryDirectory() as tmp:
         for n_points in sizes:
-            scan = simulate("street", out=Path(tmp) / f"s{n_points}", n_points=n_points, seed=1)
-            path = scan.scans[0]
+            made = simulate("street", out=Path(tmp) / f"s{n_points}", n_points=n_points, seed=1)
+            path = made.scans[0].points_path
             code = (
                 f"import sys; sys.path.insert(0, {str(Path(__file__).resolve().parent)!r});"
                 "from _harness import peak_rss_mb;"
@@ -526,7 +526,7 @@ def main() -> None:
         "--density-points",
         type=int,
         nargs="+",
-        default=[2_500_000, 5_000_000, 10_000_000, 20_000_000],
+        default=[5_000_000, 10_000_000, 20_000_000, 40_000_000],
         help="points of the simulated station for --only density",
     )
     args = parser.parse_args()
