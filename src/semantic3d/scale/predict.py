@@ -35,7 +35,7 @@ from semantic3d.baselines.common.prediction import (
 )
 from semantic3d.baselines.common.run import PredictionRun, PredictionRunSet
 from semantic3d.baselines.common.submission import ScanToLabel
-from semantic3d.baselines.covariance.context import row_centroids
+from semantic3d.baselines.covariance.context import last_points, row_centroids
 from semantic3d.baselines.covariance.model import CovarianceModel, point_cells
 from semantic3d.core.pointcloud import PointCloud
 from semantic3d.features.tiling import TiledScan
@@ -53,6 +53,9 @@ __all__ = [
 
 MODEL_FILE = "model.pickle"
 """The model as the workers read it, in the scan's scratch folder."""
+
+_PART_POINTS = 1 << 21
+"""A tile's points read at a time to place its rows."""
 
 TileLabels = tuple[NDArray[np.int64], NDArray[np.uint8]]
 """``(point_indices, label_values)`` of one tile."""
@@ -136,19 +139,30 @@ def label_tile(scan_folder: str, scan_state: bytes, model_path: str, tile: TileK
     """
     opened = open_tiled_scan(scan_folder, scan_state)
     model = _load_pickled_model(model_path)
-    # the forest on the rows as they are made, as in one process: the table is never whole
-    features = opened.tile_features(tile, row_map=model.row_probabilities)
+    # the forest on the rows as they are made, as in one process: the table is never whole;
+    # nor are the tile's points copied (a scan's densest tile grows with the scan)
+    features = opened.tile_features(tile, row_map=model.row_probabilities, positions=False)
     if features is None:
         return np.empty(0, np.int64), np.empty(0, np.uint8)
     table = features.table
-    assert table.mapped is not None and features.xyz is not None
+    assert table.mapped is not None and opened.origin is not None
     row_xyz = None
-    if model.needs_row_positions(table):
+    if model.needs_row_positions(table):  # per-point rows, or a scan of a few voxels
         # positions relative to the grid origin, as in one process
-        relative = (features.xyz - opened.origin).astype(np.float32)
+        xyz = opened.store.read_core(tile).copied().cloud.xyz
+        relative = (xyz - opened.origin).astype(np.float32)
         row_xyz = row_centroids(relative, table.point_row, table.n_rows)
-    row_cell = np.zeros(table.n_rows, np.uint16)  # the squares a dense tile's graph is cut in
-    row_cell[table.point_row] = point_cells(features.xyz, origin=opened.origin, config=model.config)
+    # the squares a dense tile's graph is cut in: a row's is its last point's, as in one
+    # process, the tile's points read a part at a time
+    last = last_points(table.point_row, table.n_rows)
+    row_cell = np.zeros(table.n_rows, np.uint16)
+    start = 0
+    for part in opened.store.iter_core_parts(tile, _PART_POINTS):
+        stop = start + part.n_points
+        rows = np.flatnonzero((last >= start) & (last < stop))
+        xyz = part.copied().cloud.xyz[last[rows] - start]
+        row_cell[rows] = point_cells(xyz, origin=opened.origin, config=model.config)
+        start = stop
     labels = model.label_probabilities(
         table.mapped, row_xyz=row_xyz, row_cell=row_cell, neighbours=table.neighbours
     )[table.point_row]

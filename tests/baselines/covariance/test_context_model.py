@@ -274,7 +274,7 @@ def test_rows_take_the_tile_and_square_of_their_last_point(tmp_path) -> None:  #
 def test_a_rows_last_point_is_found_on_any_number_of_threads(threads: int, n_rows: int) -> None:
     """Passes race only to raise a row's point: the result is the largest point of each
     row (-1 without points), what a sequential pass gives, for any threads."""
-    from semantic3d.baselines.covariance._context_kernels import last_points
+    from semantic3d.baselines.covariance.context import last_points
     from semantic3d.core.threads import thread_limit
 
     rng = np.random.default_rng(n_rows)

@@ -41,6 +41,7 @@ __all__ = [
     "knn_edges",
     "label_rows",
     "label_rows_by_group",
+    "last_points",
     "lists_suffice",
     "potts_energy",
     "row_centroids",
@@ -319,6 +320,16 @@ def lists_suffice(neighbours: NDArray[np.int64] | None, n_neighbours: int) -> bo
     row. A scan of very few voxels has shorter lists; the context graph then comes from the
     rows' positions, whole or tiled alike."""
     return neighbours is not None and neighbours.ndim == 2 and neighbours.shape[1] > n_neighbours
+
+
+def last_points(point_row: NDArray[np.int64], n_rows: int) -> NDArray[np.int64]:
+    """The last of every row's points (``point_row`` the row of each point; -1 for a row
+    without points), whose place a row takes: where numpy's ``row[point_row] = ...``
+    leaves each row's value from. On every thread, the same for any threads."""
+    from semantic3d.baselines.covariance._context_kernels import last_points as kernel
+
+    last: NDArray[np.int64] = kernel(np.ascontiguousarray(point_row, dtype=np.int64), n_rows)
+    return last
 
 
 def label_rows_by_group(

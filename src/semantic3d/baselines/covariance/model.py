@@ -18,6 +18,7 @@ from semantic3d.baselines.covariance.config import ContextConfig, CovarianceConf
 from semantic3d.baselines.covariance.context import (
     GRAPH_CELL_DEPTH,
     label_rows_by_group,
+    last_points,
     lists_suffice,
     row_centroids,
 )
@@ -388,10 +389,8 @@ class _PositionFile:
         (``point_row`` the row of each of the given points), as numpy's
         ``row_tile[point_row] = tiles`` leaves them. Only each row's last point is read:
         a row is a voxel, so a tile's rows are read, not its points."""
-        from semantic3d.baselines.covariance._context_kernels import last_points
-
         _, tiles, cells = self._open()
-        last = last_points(np.ascontiguousarray(point_row, dtype=np.int64), n_rows)
+        last = last_points(point_row, n_rows)
         row_tile = np.zeros(n_rows, np.int64)
         row_cell = np.zeros(n_rows, np.uint16)
         placed = last >= 0
