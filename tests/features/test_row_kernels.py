@@ -43,6 +43,24 @@ def test_rows_of_keys_equals_searchsorted(n_keys: int, n_rows: int, seed: int) -
     for n in THREADS:
         with thread_limit(n):
             np.testing.assert_array_equal(rows_of_keys(keys, row_keys), expected)
+            written = keys.copy()  # in place: the same rows, over the keys
+            assert rows_of_keys(written, row_keys, in_place=True) is written
+            np.testing.assert_array_equal(written, expected)
+
+
+def test_rows_of_keys_in_place_takes_only_an_array_it_can_write_over() -> None:
+    row_keys = np.arange(5, dtype=np.int64)
+    for keys in (
+        np.arange(6, dtype=np.int32),
+        np.arange(12, dtype=np.int64).reshape(3, 4)[:, :2],
+        np.arange(6, dtype=np.int64)[::2],
+    ):
+        with pytest.raises(ValueError, match="writeable C-contiguous int64"):
+            rows_of_keys(keys, row_keys, in_place=True)
+    frozen = np.arange(6, dtype=np.int64)
+    frozen.flags.writeable = False
+    with pytest.raises(ValueError, match="writeable C-contiguous int64"):
+        rows_of_keys(frozen, row_keys, in_place=True)
 
 
 @settings(max_examples=60, deadline=None)

@@ -120,14 +120,23 @@ def _rows_of_keys(
         out[i] = position if row_keys[position] == key else -1
 
 
-def rows_of_keys(keys: NDArray[np.int64], row_keys: NDArray[np.int64]) -> NDArray[np.int64]:
+def rows_of_keys(
+    keys: NDArray[np.int64], row_keys: NDArray[np.int64], *, in_place: bool = False
+) -> NDArray[np.int64]:
     """The row of every key in ``keys`` (any shape): its position in the sorted unique
-    ``row_keys``, or -1 where it is not there."""
-    rows = np.empty(keys.shape, np.int64)
+    ``row_keys``, or -1 where it is not there. ``in_place``: written over ``keys`` (a
+    C-contiguous int64 array), which is returned; a tile's neighbour lists are 80 bytes
+    a voxel."""
+    if in_place:
+        if keys.dtype != np.int64 or not keys.flags.c_contiguous or not keys.flags.writeable:
+            raise ValueError("keys: expected a writeable C-contiguous int64 array in place")
+        rows = keys
+    else:
+        rows = np.empty(keys.shape, np.int64)
     if row_keys.size == 0:
         rows[...] = -1
         return rows
-    _rows_of_keys(
+    _rows_of_keys(  # each key is read before its row is written
         np.ascontiguousarray(keys, dtype=np.int64).reshape(-1),
         np.ascontiguousarray(row_keys, dtype=np.int64),
         rows.reshape(-1),

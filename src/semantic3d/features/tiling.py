@@ -815,7 +815,8 @@ class TiledScan:
         with span("levels", levels=[a.number for a in asks], threads=thread_budget()) as attrs:
             attrs["parts"] = self._exact_levels_in_parts(tile, asks)
             attrs["threads_after"] = thread_budget()
-        neighbours = rows_of_keys(neighbour_keys, levels[0].keys[voxels])
+        neighbours = rows_of_keys(neighbour_keys, levels[0].keys[voxels], in_place=True)
+        del neighbour_keys  # now the neighbours' rows
         # a scan of fewer than k level-0 voxels has fewer neighbours: as the whole-scan path
         width_found = min(config.k_neighbours, self._level_sizes[0])
         neighbours = neighbours[:, :width_found]

@@ -42,9 +42,6 @@ def undirected_edges(neighbours: np.ndarray) -> np.ndarray:  # pragma: no cover 
     return out[:count].copy()
 
 
-_EDGE_BLOCK_ROWS = 4096
-
-
 @nb.njit(cache=True, nogil=True, inline="always")
 def _kept(neighbours: np.ndarray, width: Any, i: Any, j: Any) -> bool:  # pragma: no cover
     """Whether ``undirected_edges`` keeps ``(i, j)`` from ``i``'s list."""
@@ -57,48 +54,31 @@ def _kept(neighbours: np.ndarray, width: Any, i: Any, j: Any) -> bool:  # pragma
     return True
 
 
-@nb.njit(cache=True, nogil=True, parallel=True)
-def grouped_edges(
-    neighbours: np.ndarray, width: int, group: np.ndarray, local: np.ndarray, n_groups: int
-) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
-    """Each group's own edges: :func:`undirected_edges` of the first ``width`` columns of
-    ``neighbours`` whose two ends share a ``group``, as ``local`` row numbers, the groups
-    one after another (each in row-major list order), and the groups' bounds.
-
-    Two parallel passes over blocks of rows, counting then writing each block's edges at
-    offsets summed in block order, so the result does not depend on the threads.
-    """
-    n = neighbours.shape[0]
-    n_blocks = (n + _EDGE_BLOCK_ROWS - 1) // _EDGE_BLOCK_ROWS
-    counts = np.zeros((n_blocks, n_groups), np.int64)
-    for block in nb.prange(n_blocks):
-        for i in range(block * _EDGE_BLOCK_ROWS, min(n, (block + 1) * _EDGE_BLOCK_ROWS)):
-            g = group[i]
-            for slot in range(width):
-                j = np.int64(neighbours[i, slot])
-                if _kept(neighbours, width, i, j) and group[j] == g:
-                    counts[block, g] += 1
-    bounds = np.zeros(n_groups + 1, np.int64)
-    offsets = np.empty((n_blocks, n_groups), np.int64)
-    for g in range(n_groups):
-        running = bounds[g]
-        for block in range(n_blocks):
-            offsets[block, g] = running
-            running += counts[block, g]
-        bounds[g + 1] = running
-    out = np.empty((bounds[n_groups], 2), np.int64)
-    for block in nb.prange(n_blocks):
-        cursor = offsets[block].copy()
-        for i in range(block * _EDGE_BLOCK_ROWS, min(n, (block + 1) * _EDGE_BLOCK_ROWS)):
-            g = group[i]
-            for slot in range(width):
-                j = np.int64(neighbours[i, slot])
-                if _kept(neighbours, width, i, j) and group[j] == g:
-                    low, high = (i, j) if i < j else (j, i)
-                    out[cursor[g], 0] = local[low]
-                    out[cursor[g], 1] = local[high]
-                    cursor[g] += 1
-    return out, bounds
+@nb.njit(cache=True, nogil=True)
+def group_edges(
+    neighbours: np.ndarray,
+    width: int,
+    group: np.ndarray,
+    local: np.ndarray,
+    rows: np.ndarray,
+    number: int,
+) -> np.ndarray:  # pragma: no cover - compiled
+    """Group ``number``'s own edges: :func:`undirected_edges` of the first ``width``
+    columns of ``neighbours`` whose two ends are both in the group (``rows``, its rows
+    ascending, so in row-major list order), as ``local`` row numbers. Made in the group's
+    task: no edge array of every group at once."""
+    out = np.empty((rows.shape[0] * width, 2), np.int64)
+    count = 0
+    for r in range(rows.shape[0]):
+        i = np.int64(rows[r])
+        for slot in range(width):
+            j = np.int64(neighbours[i, slot])
+            if _kept(neighbours, width, i, j) and group[j] == number:
+                low, high = (i, j) if i < j else (j, i)
+                out[count, 0] = local[low]
+                out[count, 1] = local[high]
+                count += 1
+    return out[:count].copy()
 
 
 @nb.njit(cache=True, nogil=True, inline="always")

@@ -375,24 +375,22 @@ def label_rows_by_group(
                 max_sweeps=max_sweeps,
                 neighbours=neighbours,
             )
-    from semantic3d.baselines.covariance._context_kernels import grouped_edges
+    from semantic3d.baselines.covariance._context_kernels import group_edges
     from semantic3d.spatial.voxels import group_order
 
     result = np.empty(n, np.int64)
     # the rows group by group (each ascending), the groups' bounds, each row's place in
     # its group: one counting sort on the task's threads
     order, bounds, local = group_order(inverse, n_groups)
-    edges = edge_bounds = None
+    lists = None
     if lists_suffice(neighbours, n_neighbours):
         assert neighbours is not None
-        # each group's own edges, in their order, numbered within the group
         lists = _checked_lists(neighbours, n, n_neighbours)
-        edges, edge_bounds = grouped_edges(lists, n_neighbours + 1, inverse, local, n_groups)
 
     def label_group(number: int) -> NDArray[np.int64]:
         rows = order[bounds[number] : bounds[number + 1]]  # ascending: the group's order
         with span("cut square", rows=rows.size):
-            if edges is None or edge_bounds is None:
+            if lists is None:
                 return label_rows(
                     proba[rows],
                     None if row_xyz is None else row_xyz[rows],
@@ -400,9 +398,12 @@ def label_rows_by_group(
                     n_neighbours=n_neighbours,
                     max_sweeps=max_sweeps,
                 )
-            group_edges = edges[edge_bounds[number] : edge_bounds[number + 1]]
+            # the group's own edges, in their order, numbered within the group: made in
+            # its task (the edges of a dense tile's every square at once were 16 bytes an
+            # edge, about 7 edges a row)
+            edges = group_edges(lists, n_neighbours + 1, inverse, local, rows, number)
             unary = unary_costs(proba[rows])  # in the group's task: on its thread
-            return alpha_expansion(unary, group_edges, weight=potts_weight, max_sweeps=max_sweeps)
+            return alpha_expansion(unary, edges, weight=potts_weight, max_sweeps=max_sweeps)
 
     threads = take_free_threads()  # in a map's last tasks: the threads the others left
     # groups cut at the same time (the cuts release the GIL); each group's labels alone.
