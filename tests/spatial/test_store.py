@@ -329,6 +329,30 @@ def test_kept_points_only_with_their_scan_positions(tmp_path: Path, buffer_point
                 assert core.cloud.equals(cloud[core.indices])
 
 
+def _in_a_fresh_process(function: str, folder: Path, remap_bytes: int) -> dict[str, int]:
+    """``function(folder, remap_bytes)`` of this module run in a new interpreter (the kernel
+    writes smaps for every mapping of the process on every read, and a test worker that
+    has loaded torch and numba has thousands)."""
+    import json
+    import subprocess
+    import sys
+
+    code = (
+        f"import json; from tests.spatial.test_store import {function}; "
+        f"print(json.dumps({function}({str(folder)!r}, {remap_bytes})))"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=Path(__file__).resolve().parents[2],
+    )
+    assert done.returncode == 0, done.stderr
+    found: dict[str, int] = json.loads(done.stdout.strip().splitlines()[-1])
+    return found
+
+
 def _mapped_while_reading_every_tile(folder: str, remap_bytes: int) -> dict[str, int]:
     """Build a 400 k-point store in ``folder`` and read every tile, maps reopened every
     ``remap_bytes``: the store file's resident KiB after sealing and at worst while reading."""
@@ -366,23 +390,7 @@ def test_reading_every_tile_keeps_the_mapped_store_out_of_resident_memory(tmp_pa
     Measured in a fresh process: the kernel writes smaps for every mapping of the process
     on every read, and a test worker that has loaded torch and numba has thousands (40 s
     of this test's time in the suite against 8 s alone)."""
-    import json
-    import subprocess
-    import sys
-
-    code = (
-        "import json; from tests.spatial.test_store import _mapped_while_reading_every_tile; "
-        f"print(json.dumps(_mapped_while_reading_every_tile({str(tmp_path)!r}, 1 << 20)))"
-    )
-    done = subprocess.run(
-        [sys.executable, "-c", code],
-        capture_output=True,
-        text=True,
-        timeout=300,
-        cwd=Path(__file__).resolve().parents[2],
-    )
-    assert done.returncode == 0, done.stderr
-    found = json.loads(done.stdout.strip().splitlines()[-1])
+    found = _in_a_fresh_process("_mapped_while_reading_every_tile", tmp_path, 1 << 20)
     assert found["sealed_kib"] == 0  # written with plain writes
     assert found["file_bytes"] > 15 << 20
     assert found["seen"] == found["points"]
@@ -476,23 +484,7 @@ def test_a_tile_larger_than_the_remap_period_is_let_go_of_with_its_points(tmp_pa
     of, none of the tile's pages stays in the process's memory (the store's kept maps
     held the densest tile's gigabyte until the next read); read in parts, a tile holds
     about the remap period. In a fresh process, as the test above."""
-    import json
-    import subprocess
-    import sys
-
-    code = (
-        "import json; from tests.spatial.test_store import _mapped_after_a_large_tile; "
-        f"print(json.dumps(_mapped_after_a_large_tile({str(tmp_path)!r}, 1 << 20)))"
-    )
-    done = subprocess.run(
-        [sys.executable, "-c", code],
-        capture_output=True,
-        text=True,
-        timeout=300,
-        cwd=Path(__file__).resolve().parents[2],
-    )
-    assert done.returncode == 0, done.stderr
-    found = json.loads(done.stdout.strip().splitlines()[-1])
+    found = _in_a_fresh_process("_mapped_after_a_large_tile", tmp_path, 1 << 20)
     assert found["file_kib"] > 15 << 10
     assert found["read_whole"] > 15 << 10  # the whole tile was read through a map
     assert found["after_whole"] == 0

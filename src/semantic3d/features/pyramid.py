@@ -354,7 +354,10 @@ def _unpacked(keys: NDArray[np.int64]) -> NDArray[np.int64]:  # pragma: no cover
     return cells
 
 
-# Hand-written for the reason of _describe_runs below: each voxel's sums run in input order.
+# Hand-written: numpy's reductions sum pairwise or by strided blocks whose order depends on
+# the array layout; one sequential loop per voxel fixes the order (bitwise equal tiles, and
+# a pyramid built in parts equal to the whole build), and the voxels are summed on every
+# thread at once.
 @numba.njit(cache=True, nogil=True, parallel=True)
 def _add_runs(
     xyz: NDArray[np.float64],
@@ -400,10 +403,6 @@ def _halved(cells: NDArray[np.int64]) -> NDArray[np.int64]:  # pragma: no cover 
     return out
 
 
-# Hand-written: numpy's reductions sum pairwise or by strided blocks whose order depends on
-# the array layout; one sequential loop per voxel fixes the order (bitwise equal tiles),
-# and the voxels are described on every thread at once.
-@numba.njit(cache=True, nogil=True, parallel=True)
 def _describe_runs(
     xyz: NDArray[np.float64],
     shift: NDArray[np.float64],
@@ -413,35 +412,16 @@ def _describe_runs(
     order: NDArray[np.int64],
     starts: NDArray[np.int64],
     member_run: NDArray[np.int64],
-) -> tuple[
-    NDArray[np.float64], NDArray[np.float64], NDArray[np.int64], NDArray[np.int64]
-]:  # pragma: no cover - compiled
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.int64], NDArray[np.int64]]:
     """The voxels made of the runs ``order[starts[i]:starts[i+1]]`` of rows: the mean of
-    ``xyz - shift`` and of ``values`` over each run (summed in run order), its cells and
-    key (those of its first row); ``member_run[row]`` is set to the run of every row."""
+    ``xyz - shift`` and of ``values`` over each run (summed in run order, :func:`_add_runs`),
+    its cells and key (those of its first row); ``member_run[row]`` is set to the run of
+    every row."""
     n_runs = starts.size - 1
-    n_values = values.shape[1]
-    out_xyz = np.empty((n_runs, 3), np.float64)
-    out_values = np.empty((n_runs, n_values), np.float64)
-    out_cells = np.empty((n_runs, 3), np.int64)
-    out_keys = np.empty(n_runs, np.int64)
-    for run in numba.prange(n_runs):
-        begin = starts[run]
-        end = starts[run + 1]
-        for i in range(begin, end):
-            member_run[order[i]] = run
-        for column in range(3):
-            total = 0.0
-            for i in range(begin, end):
-                total += xyz[order[i], column] - shift[column]
-            out_xyz[run, column] = total / (end - begin)
-        for column in range(n_values):
-            total = 0.0
-            for i in range(begin, end):
-                total += values[order[i], column]
-            out_values[run, column] = total / (end - begin)
-        first = order[begin]
-        for axis in range(3):
-            out_cells[run, axis] = cells[first, axis]
-        out_keys[run] = keys[first]
-    return out_xyz, out_values, out_cells, out_keys
+    totals = np.zeros((n_runs, 3), np.float64)
+    value_totals = np.zeros((n_runs, values.shape[1]), np.float64)
+    counts = np.zeros(n_runs, np.int64)
+    runs = np.arange(n_runs, dtype=np.int64)
+    _add_runs(xyz, shift, values, order, starts, runs, totals, value_totals, counts, member_run)
+    first = order[starts[:-1]]
+    return totals / counts[:, None], value_totals / counts[:, None], cells[first], keys[first]

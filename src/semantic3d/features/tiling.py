@@ -418,7 +418,6 @@ class TiledScan:
         n_points = self.store.count(tile)
         if n_points > PYRAMID_PART_POINTS:  # a part's points at a time
             n_attributes = 3 * config.colour + config.intensity
-
             pyramid = build_pyramid_in_parts(
                 (  # contiguous coordinates, copied on every thread
                     (part.copied().cloud.xyz, self._attributes(part))
@@ -578,7 +577,7 @@ class TiledScan:
         if select is None:  # every point: one copy of the columns, on every thread
             if points.n_points == 0:
                 return None
-            # rows of voxels need not the points' positions
+            # a tile of voxel rows needs no positions of its points
             copied = positions or self.config.per_point
             points = points.copied(positions=copied)
             labels, indices, local = points.cloud.labels, points.indices, None
