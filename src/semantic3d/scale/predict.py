@@ -160,7 +160,7 @@ def label_tile(scan_folder: str, scan_state: bytes, model_path: str, tile: TileK
     for part in opened.store.iter_core_parts(tile, _PART_POINTS):
         stop = start + part.n_points
         rows = np.flatnonzero((last >= start) & (last < stop))
-        xyz = part.copied().cloud.xyz[last[rows] - start]
+        xyz = part.cloud.xyz[last[rows] - start]  # only the rows' last points, gathered
         row_cell[rows] = point_cells(xyz, origin=opened.origin, config=model.config)
         start = stop
     labels = model.label_probabilities(
