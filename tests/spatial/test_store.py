@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import multiprocessing
 import pickle
+import tracemalloc
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
@@ -24,6 +25,7 @@ from semantic3d.spatial import (
     build_tile_store,
     open_cache_tiles,
 )
+from semantic3d.spatial import store as store_module
 from tests.mappings import mapped_kib
 
 
@@ -149,6 +151,33 @@ def test_stores_are_sealed_the_same_on_any_number_of_threads(
     assert files[0] == files[1]
     stored = TileStore(tmp_path / "threads3")
     assert sum(stored.count(tile) for tile in stored.tiles) == cloud.n_points
+
+
+def test_sealing_a_spilled_tile_holds_its_codes_and_order_not_its_records(
+    tmp_path: Path,
+) -> None:
+    """The densest tile of a station holds over half of its points: sealing it holds 6
+    bytes a point and a window of records, not the tile's 40-byte records (with the sort's
+    8-byte cells and destinations, 60 bytes a point of the tile)."""
+    n = 1_000_000
+    cloud = _cloud(n, extent=1.0)  # one tile
+    writer = TemporaryTileStore.writer(
+        grid=TileGrid.square(4.0, origin_xy=(-2.0, -2.0)), workdir=tmp_path, buffer_points=1 << 17
+    )
+    for chunk in _chunks(cloud, 1 << 16):
+        writer.add(chunk)
+    assert writer.spilled_points > n // 2
+    tracemalloc.start()
+    try:
+        store = writer.close()
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    window = store_module._SEAL_WINDOW * 40
+    assert peak < 6 * n + window + (2 << 20), f"{peak / 2**20:.1f} MiB while sealing"
+    with TemporaryTileStore.adopt(store) as sealed:
+        assert sealed.count(sealed.tiles[0]) == n
+        np.testing.assert_array_equal(sealed.read_core(sealed.tiles[0]).indices, np.arange(n))
 
 
 def test_sparse_tiles_far_apart(tmp_path: Path) -> None:

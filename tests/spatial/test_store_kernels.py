@@ -3,16 +3,21 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+from unittest.mock import patch
+
 import numba
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from semantic3d.core.errors import DataFormatError
 from semantic3d.core.pointcloud import PointCloud
 from semantic3d.core.threads import thread_limit
 from semantic3d.spatial import TemporaryTileStore, TileGrid
-from semantic3d.spatial._kernels import stable_destinations
+from semantic3d.spatial import store as store_module
+from semantic3d.spatial._kernels import order_by_code, stable_destinations
 from semantic3d.spatial.store import TilePoints, TileStore, record_dtype, xyz_label_rows
 
 
@@ -62,9 +67,9 @@ def _random_cloud(rng: np.random.Generator, n: int, *, labels: bool) -> PointClo
 
 def _assert_store_is(store: TileStore, expected: dict) -> None:
     assert list(store.tiles) == expected["tiles"]
-    assert store._points is not None and store._order is not None
-    assert store._points.tobytes() == expected["records"].tobytes()
-    np.testing.assert_array_equal(store._order, expected["order"])
+    points, order = store._arrays(store.n_points)  # in memory, or mapped from its files
+    assert points.tobytes() == expected["records"].tobytes()
+    np.testing.assert_array_equal(order, expected["order"])
     np.testing.assert_array_equal(store._offsets, expected["offsets"])
 
 
@@ -127,6 +132,76 @@ def test_stable_destinations_equal_a_stable_argsort(
     expected[np.argsort(slots, kind="stable")] = np.arange(n)
     np.testing.assert_array_equal(destination, expected)
     np.testing.assert_array_equal(counts, np.bincount(slots, minlength=n_slots + 1))
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    n=st.integers(0, 200_000),
+    n_codes=st.integers(1, 1024),
+    n_threads=st.sampled_from([1, 2, 5]),
+    seed=st.integers(0, 1000),
+)
+def test_order_by_code_is_a_stable_argsort_on_any_threads(
+    n: int, n_codes: int, n_threads: int, seed: int
+) -> None:
+    codes = np.random.default_rng(seed).integers(0, n_codes, n).astype(np.uint16)
+    order = np.empty(n, np.int32)
+    offsets = np.empty(n_codes + 1, np.int64)
+    with thread_limit(n_threads):
+        order_by_code(codes, n_codes, order, offsets, numba.get_num_threads())
+    np.testing.assert_array_equal(order, np.argsort(codes, kind="stable"))
+    np.testing.assert_array_equal(offsets[1:], np.cumsum(np.bincount(codes, minlength=n_codes)))
+    assert offsets[0] == 0
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    n=st.integers(0, 400),
+    chunk=st.integers(1, 150),
+    buffer_points=st.integers(1, 120),
+    window=st.sampled_from([1, 3, 64]),
+    n_sub=st.integers(1, 6),
+    n_threads=st.sampled_from([1, 3]),
+    seed=st.integers(0, 1000),
+)
+def test_a_spilled_store_sealed_a_window_at_a_time_equals_the_numpy_reference(
+    n: int, chunk: int, buffer_points: int, window: int, n_sub: int, n_threads: int, seed: int
+) -> None:
+    """Tiles spilled to their files in turns, then sealed a few records at a time (their
+    sub-cells coded window by window, ordered once the tile is whole)."""
+    rng = np.random.default_rng(seed)
+    cloud = _random_cloud(rng, n, labels=True)
+    keep = rng.integers(0, 4, n) >= 1
+    grid = TileGrid.square(1.0)
+    with (
+        patch.object(store_module, "_SEAL_WINDOW", window),
+        thread_limit(n_threads),
+        TemporaryTileStore.writer(
+            grid=grid, subdivisions=n_sub, buffer_points=buffer_points
+        ) as writer,
+    ):
+        for start in range(0, n, chunk):
+            writer.add(cloud[start : start + chunk], keep=keep[start : start + chunk])
+        spilled = writer.spilled_points
+        with TemporaryTileStore.adopt(writer.close(), spilled_points=spilled) as store:
+            assert (store.directory is None) == (spilled == 0)
+            _assert_store_is(store, _reference(cloud, keep, grid, n_sub))
+
+
+def test_a_damaged_tile_file_is_refused_while_sealing_and_nothing_is_left(
+    tmp_path: Path,
+) -> None:
+    cloud = _random_cloud(np.random.default_rng(3), 500, labels=True)
+    writer = store_module.TileStoreWriter(
+        tmp_path / "store", grid=TileGrid.square(10.0, origin_xy=(-5.0, -5.0)), buffer_points=100
+    )
+    writer.add(cloud)
+    (tile,) = writer._on_disk
+    with writer._part(tile).open("ab") as part:
+        part.write(b"\0" * 5)  # a record cut short
+    with pytest.raises(DataFormatError, match=r"\.part: expected whole records of 40 bytes"):
+        writer.close()
+    assert list(tmp_path.iterdir()) == []
 
 
 @settings(max_examples=40, deadline=None)

@@ -99,36 +99,55 @@ def group_by_slot(
 
 
 @nb.njit(cache=True, nogil=True, parallel=True)
-def sub_cell_order(
-    xyz: np.ndarray,
-    x0: float,
-    y0: float,
-    sub_m: float,
-    n_sub: int,
-    order: np.ndarray,
-    offsets: np.ndarray,
-    n_threads: int,
+def sub_cell_codes(
+    xyz: np.ndarray, x0: float, y0: float, sub_m: float, n_sub: int, codes: np.ndarray
 ) -> None:  # pragma: no cover - compiled
-    """A tile's points sub-cell by sub-cell: ``order`` (local indices) and ``offsets``.
+    """Each point's sub-cell of its tile, written into ``codes`` (uint16: ``n_sub`` <= 256).
 
     Sub-cell ``sx * n_sub + sy`` with ``sx = clip(floor((x - x0) / sub_m), 0, n_sub - 1)``
-    (the expression :meth:`TileStore._box_indices` inverts); ``offsets`` has ``n_sub**2 + 1``
-    entries, where each sub-cell starts in ``order``.
+    (the expression :meth:`TileStore._box_indices` inverts). A tile's points may come in
+    windows: a point's code depends on nothing but the point.
     """
-    n = xyz.shape[0]
     top = float(n_sub - 1)
-    cells = np.empty(n, np.int64)
-    for i in nb.prange(n):
+    for i in nb.prange(xyz.shape[0]):
         sx = min(max(np.floor((xyz[i, 0] - x0) / sub_m), 0.0), top)
         sy = min(max(np.floor((xyz[i, 1] - y0) / sub_m), 0.0), top)
-        cells[i] = int(sx) * n_sub + int(sy)
-    n_cells = n_sub * n_sub
-    destination, counts = stable_destinations(cells, n_cells, n_threads)
+        codes[i] = int(sx) * n_sub + int(sy)
+
+
+@nb.njit(cache=True, nogil=True, parallel=True)
+def order_by_code(
+    codes: np.ndarray, n_codes: int, order: np.ndarray, offsets: np.ndarray, n_threads: int
+) -> None:  # pragma: no cover - compiled
+    """A stable counting sort of ``codes`` (values ``0..n_codes-1``): ``order`` (int32
+    positions, code by code, each code's in their order) and ``offsets`` (``n_codes + 1``
+    entries, where each code starts in ``order``): ``np.argsort(codes, kind="stable")``.
+
+    As :func:`stable_destinations` (blocks counted on every thread, the same order for any
+    ``n_threads``), but each block writes its positions straight into ``order``: no
+    8-byte destination per element beside the 2-byte codes.
+    """
+    n = codes.shape[0]
+    n_blocks = max(1, min(4 * n_threads, n // _BLOCK_POINTS))
+    per_block = -(-n // n_blocks)
+    counts = np.zeros((n_blocks, n_codes), np.int64)
+    for block in nb.prange(n_blocks):
+        for i in range(block * per_block, min(n, (block + 1) * per_block)):
+            counts[block, codes[i]] += 1
+    starts = np.empty((n_blocks, n_codes), np.int64)
+    running = 0
     offsets[0] = 0
-    for cell in range(n_cells):
-        offsets[cell + 1] = offsets[cell] + counts[cell]
-    for i in nb.prange(n):
-        order[destination[i]] = i
+    for code in range(n_codes):
+        for block in range(n_blocks):
+            starts[block, code] = running
+            running += counts[block, code]
+        offsets[code + 1] = running
+    for block in nb.prange(n_blocks):
+        nexts = starts[block].copy()
+        for i in range(block * per_block, min(n, (block + 1) * per_block)):
+            code = codes[i]
+            order[nexts[code]] = i
+            nexts[code] += 1
 
 
 @nb.njit(cache=True, nogil=True, inline="always")

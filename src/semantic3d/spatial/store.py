@@ -19,7 +19,9 @@ can travel to a worker that sees the same folder. Memory while building is bound
 reads are compiled counting sorts and scans (:mod:`semantic3d.spatial._kernels`), with
 the results the numpy expressions they replace give (``tests/spatial``); tiles are
 sealed at the same time on the thread budget, each written at its place (the same
-files for any number of threads). Sealing holds the tiles being sealed in memory.
+files for any number of threads). Sealing a tile holds its sub-cell codes and order (6
+bytes a point) and a window of its records, not the tile: the densest tile of a station
+holds over half of its points.
 """
 
 from __future__ import annotations
@@ -77,6 +79,9 @@ REMAP_BYTES = 1 << 27
 """Records read through one mapping of a store's files before they are mapped anew (a
 process, a Dask worker among them, keeps at most about this much of a store resident)."""
 DEFAULT_BUFFER_POINTS = 1 << 22
+_SEAL_WINDOW = 1 << 16
+"""Records of a spilled tile read and written at a time while sealing (2.9 MB: the
+window stays in the cache between its read and its write)."""
 _MAX_TILE_SPAN = 1 << 31
 """Tiles along x or y that one chunk may span (their numbers fit 62 bits)."""
 _SMALL_TILE_POINTS = 4096
@@ -504,7 +509,7 @@ class TileStore:
         sub = self.grid.tile_size_m / n_sub
 
         def span(low: float, high: float, start: float) -> tuple[int, int]:
-            # The very expression of the assignment (_kernels.sub_cell_order): IEEE
+            # The very expression of the assignment (_kernels.sub_cell_codes): IEEE
             # subtraction and division round monotonically, so low <= x implies
             # floor((low - start) / sub) <= the point's sub-cell, and no slack is needed.
             first = max(0, math.floor((low - start) / sub))
@@ -844,40 +849,69 @@ class TileStoreWriter:
         order: NDArray[np.int32],
         offsets: NDArray[np.int64],
     ) -> None:
-        """Write ``tile``'s records (the spilled ones, then those in memory) into
+        """Write ``tile``'s records held in memory (a store with no tile spilled) into
         ``records`` and its sub-cell index into ``order`` and ``offsets``."""
-        import numba
-
-        from semantic3d.spatial._kernels import sub_cell_order
-
         end = 0
-        if tile in self._on_disk:  # read straight into place (no array read, then copied)
-            with self._part(tile).open("rb") as stream:
-                view = _as_bytes(records).data.cast("B")
-                size = os.fstat(stream.fileno()).st_size
-                while end < size:
-                    read = stream.readinto(view[end:size])
-                    if not read:
-                        raise DataFormatError(
-                            f"{self._part(tile)}: expected {size} bytes, found {end}"
-                        )
-                    end += read
-            end //= records.dtype.itemsize
         for part in self._buffers.pop(tile, []):  # as bytes: a structured copy is ~8x slower
             _as_bytes(records[end : end + part.shape[0]])[...] = _as_bytes(part)
             end += part.shape[0]
+        codes = np.empty(records.shape[0], np.uint16)
+        self._code(tile, records, codes)
+        self._order(codes, order, offsets)
+
+    def _code(self, tile: TileKey, records: NDArray[Any], codes: NDArray[np.uint16]) -> None:
+        """The sub-cell of each of ``records`` (points of ``tile``) into ``codes``."""
+        from semantic3d.spatial._kernels import sub_cell_codes
+
         t_x0, t_y0, _, _ = self.grid.tile_bounds(tile)
-        sub_cell_order(  # a stable counting sort by sub-cell
+        sub_cell_codes(
             records["xyz"],
             t_x0,
             t_y0,
             self.grid.tile_size_m / self.subdivisions,
             self.subdivisions,
-            order,
-            offsets,
-            numba.get_num_threads(),
+            codes,
         )
-        self._part(tile).unlink(missing_ok=True)
+
+    def _order(
+        self, codes: NDArray[np.uint16], order: NDArray[np.int32], offsets: NDArray[np.int64]
+    ) -> None:
+        """A tile's points sub-cell by sub-cell (a stable counting sort of their codes)."""
+        import numba
+
+        from semantic3d.spatial._kernels import order_by_code
+
+        order_by_code(codes, self.subdivisions**2, order, offsets, numba.get_num_threads())
+
+    def _windows(
+        self, tile: TileKey, dtype: np.dtype[Any], window: NDArray[Any]
+    ) -> Iterator[NDArray[Any]]:
+        """``tile``'s records in their order, a window at a time: its spilled ones read
+        into ``window`` (reused: each is valid until the next), then those in memory."""
+        if tile in self._on_disk:
+            path = self._part(tile)
+            with path.open("rb") as stream:
+                size = os.fstat(stream.fileno()).st_size
+                if size % dtype.itemsize:
+                    raise DataFormatError(
+                        f"{path}: expected whole records of {dtype.itemsize} bytes, "
+                        f"found {size} bytes"
+                    )
+                left = size // dtype.itemsize
+                while left:
+                    records = window[: min(left, window.shape[0])]
+                    view = _as_bytes(records).data.cast("B")
+                    got = 0
+                    while got < view.nbytes:  # short reads: read on
+                        read = stream.readinto(view[got:])
+                        if not read:
+                            raise DataFormatError(
+                                f"{path}: expected {size} bytes, found {stream.tell()}"
+                            )
+                        got += read
+                    left -= records.shape[0]
+                    yield records
+        yield from self._buffers.pop(tile, [])
 
     def _write(
         self,
@@ -888,9 +922,11 @@ class TileStoreWriter:
         counts: list[int],
     ) -> None:
         """Write the point and order files, each tile at its place with positioned writes
-        (tiles at the same time) from memory that holds the tiles being written: a file
-        written through a memory map counts every page it wrote in the process's resident
-        memory, the whole store at the end."""
+        (tiles at the same time), a window of its records at a time: a tile being sealed
+        holds 6 bytes a point (its sub-cell codes and order) and one window, not its
+        44-byte records (the densest tile of a station holds over half of its points). A
+        file written through a memory map would count every page it wrote in the
+        process's resident memory, the whole store at the end."""
         with (
             (self._staging / POINTS_FILE).open("wb") as points_file,
             (self._staging / ORDER_FILE).open("wb") as order_file,
@@ -903,17 +939,33 @@ class TileStoreWriter:
             writing = threading.Lock()
 
             def write(row: int) -> None:
-                records = np.empty(counts[row], dtype)
-                order = np.empty(counts[row], np.int32)
-                self._fill(tiles[row], records, order, offsets[row])
-                begin = int(starts[row])
-                # one writer at a time (a file's writes take turns anyway), on one thread:
-                # the task's other threads go back to the map while it waits and writes
-                with serial_section(), writing:
-                    _write_at(
-                        points_file.fileno(), _as_bytes(records), points_at + begin * dtype.itemsize
+                tile, begin = tiles[row], int(starts[row])
+                codes = np.empty(counts[row], np.uint16)
+                window = np.empty(min(counts[row], _SEAL_WINDOW), dtype)
+                at = 0
+                for records in self._windows(tile, dtype, window):
+                    self._code(tile, records, codes[at : at + records.shape[0]])
+                    # one writer at a time (a file's writes take turns anyway), on one
+                    # thread: the task's other threads go back to the map meanwhile
+                    with serial_section(), writing:
+                        _write_at(
+                            points_file.fileno(),
+                            _as_bytes(records),
+                            points_at + (begin + at) * dtype.itemsize,
+                        )
+                    at += records.shape[0]
+                if at != counts[row]:
+                    raise DataFormatError(
+                        f"{self._part(tile)}: expected {counts[row]} points of tile {tile}, "
+                        f"found {at}"
                     )
+                del window
+                order = np.empty(counts[row], np.int32)
+                self._order(codes, order, offsets[row])
+                del codes
+                with serial_section(), writing:
                     _write_at(order_file.fileno(), order, order_at + begin * order.itemsize)
+                self._part(tile).unlink(missing_ok=True)
 
             self._each_tile(write, counts)
 
