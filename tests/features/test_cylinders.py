@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from semantic3d.core import PointCloud
 from semantic3d.core.errors import ShapeError
@@ -117,3 +119,67 @@ def test_cylinders_do_not_depend_on_the_thread_count() -> None:
     np.testing.assert_allclose(
         one[:300], reference(points, queries[:300], 0.5), rtol=1e-6, atol=1e-6
     )
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    n=st.integers(1, 3000),
+    stack=st.integers(1, 80),
+    radius_m=st.sampled_from([0.02, 0.05, 0.3, 1.7]),
+    lattice=st.sampled_from([0.01, 0.025]),
+    n_threads=st.sampled_from([1, 3]),
+    seed=st.integers(0, 10_000),
+)
+def test_the_lowest_points_alone_give_cylinder_below_bit_for_bit(
+    n: int, stack: int, radius_m: float, lattice: float, n_threads: int, seed: int
+) -> None:
+    """Walls: columns of ``stack`` points above one another on a lattice (many points at
+    exactly the radius, equal heights, cells of more points than an insertion sort takes),
+    and queries on the points, between them and far from them."""
+    from semantic3d.core.threads import thread_limit
+
+    rng = np.random.default_rng(seed)
+    feet = np.round(rng.uniform(-0.6, 0.6, (max(1, n // stack), 2)) / lattice) * lattice
+    heights = np.round(rng.uniform(-2.0, 8.0, (feet.shape[0], stack)) / lattice) * lattice
+    points = np.column_stack([np.repeat(feet, stack, axis=0), heights.reshape(-1)]) + np.array(
+        [5432.1, -876.5, 40.0]
+    )
+    queries = np.vstack(
+        [points[:: max(1, points.shape[0] // 200)], rng.uniform(-3.0, 3.0, (60, 3)) + points[0]]
+    )
+    with thread_limit(n_threads):
+        every = compute_cylinder_features(points, queries, radius_m=radius_m)
+        below = compute_cylinder_features(
+            points, queries, radius_m=radius_m, features=("cylinder_below",)
+        )
+    assert below.shape == (queries.shape[0], 1)
+    assert np.array_equal(below[:, 0].view(np.uint32), every[:, 1].view(np.uint32))
+    np.testing.assert_allclose(
+        below[:, 0], reference(points, queries, radius_m)[:, 1], rtol=1e-6, atol=1e-4
+    )
+
+
+def test_any_subset_of_columns_into_any_destination() -> None:
+    rng = np.random.default_rng(11)
+    points = np.round(rng.uniform(-1.0, 1.0, (2000, 3)), 2)
+    queries = points[::9]
+    every = compute_cylinder_features(points, queries, radius_m=0.2)
+    wide = np.zeros((queries.shape[0], 5), np.float32)
+    for names in [("cylinder_range", "cylinder_points"), ("cylinder_below",), CYLINDER_FEATURES]:
+        columns = [CYLINDER_FEATURES.index(name) for name in names]
+        target = wide[:, 1 : 1 + len(names)]  # a column slice: not contiguous
+        got = compute_cylinder_features(points, queries, radius_m=0.2, features=names, out=target)
+        assert got is target
+        assert np.array_equal(target, every[:, columns])
+    with pytest.raises(ConfigError, match="features: expected some of"):
+        compute_cylinder_features(
+            points, queries, radius_m=0.2, features=("cylinder_above", "cylinder_range")
+        )
+    with pytest.raises(ShapeError, match=r"out: expected \(223, 1\), found \(223, 4\)"):
+        compute_cylinder_features(
+            points, queries, radius_m=0.2, features=("cylinder_below",), out=every
+        )
+    empty = compute_cylinder_features(
+        np.zeros((0, 3)), queries, radius_m=0.2, features=("cylinder_below",)
+    )
+    assert np.array_equal(empty, np.zeros((queries.shape[0], 1), np.float32))

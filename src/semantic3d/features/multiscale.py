@@ -27,9 +27,8 @@ from semantic3d.features.covariance import (
     N_COVARIANCE_COLUMNS,
     geometry_kernel,
 )
-from semantic3d.features.cylinders import N_CYLINDER_COLUMNS, compute_cylinder_features
+from semantic3d.features.cylinders import compute_cylinder_features
 from semantic3d.features.height import N_HEIGHT_COLUMNS
-from semantic3d.features.names import CYLINDER_FEATURES
 from semantic3d.features.neighbourhoods import LevelIndex
 from semantic3d.features.pyramid import PyramidLevel, VoxelPyramid, build_pyramid, grid_origin
 
@@ -214,9 +213,9 @@ def compute_level_features(
         radius_m = config.cylinder_radius_m(level)
         width = len(config.cylinder_features)
         take_free_threads()
-        cylinders = compute_cylinder_features(index.xyz, queries, radius_m=radius_m)
-        if width != N_CYLINDER_COLUMNS:
-            cylinders = np.ascontiguousarray(cylinders[:, _cylinder_columns(config)])
+        cylinders = compute_cylinder_features(
+            index.xyz, queries, radius_m=radius_m, features=config.cylinder_features
+        )
         copy_rows(cylinders, out[:, column : column + width])
         column += width
     if config.colour or config.intensity:
@@ -244,10 +243,6 @@ def reach_of_kth(
         reach: NDArray[np.float64] = np.maximum(kth, config.cylinder_radius_m(level))
         return reach
     return kth
-
-
-def _cylinder_columns(config: FeatureConfig) -> list[int]:
-    return [CYLINDER_FEATURES.index(name) for name in config.cylinder_features]
 
 
 def compute_multiscale_features(
