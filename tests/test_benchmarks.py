@@ -1,6 +1,7 @@
-"""The scaling benchmark runs end to end on a tiny scan: each path against its peer and
-floor, its counts checked against the peer's, the table written where it is told (a
-device run that fails halfway costs what a test run costs nothing)."""
+"""The benchmarks run end to end on tiny scans. The scaling one: each path against its
+peer and floor, its counts checked against the peer's, the table written where it is told
+(a device run that fails halfway costs what a test run costs nothing). The cylinder one:
+its two kernels agree bit for bit and the peer is measured."""
 
 from __future__ import annotations
 
@@ -47,3 +48,24 @@ def test_the_scaling_benchmark_measures_each_path_beside_its_peer_and_floor(
         assert rows[path]["peer_peak_bytes"] > 0
     assert len(rows["simulate"]["digest"]) == 12
     assert not list(tmp_path.glob("bench-scaling-*"))  # its scratch folder removed
+
+
+def test_the_cylinder_benchmark_checks_its_kernels_agree_and_measures_the_peer() -> None:
+    done = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "benchmarks" / "bench_cylinders.py"),
+            *("--points", "30000", "--peer-queries", "300"),
+        ],
+        capture_output=True,
+        text=True,
+        stdin=subprocess.DEVNULL,
+        env={**os.environ, "PYTHONPATH": str(ROOT / "src")},
+        timeout=300,
+        check=False,
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    lines = done.stdout.strip().splitlines()
+    assert "the two kernels equal bit for bit" in lines[0]
+    names = [line.split("  ")[0] for line in lines[2:]]
+    assert names == ["cylinder_below alone", "four columns", "scipy cKDTree 2-D"]
