@@ -10,6 +10,7 @@ from hypothesis import strategies as st
 
 from semantic3d.core.threads import thread_limit
 from semantic3d.features._row_kernels import (
+    _column_table,
     copy_rows,
     distinct_values,
     exact_rows,
@@ -46,6 +47,60 @@ def test_rows_of_keys_equals_searchsorted(n_keys: int, n_rows: int, seed: int) -
             written = keys.copy()  # in place: the same rows, over the keys
             assert rows_of_keys(written, row_keys, in_place=True) is written
             np.testing.assert_array_equal(written, expected)
+
+
+def _packed(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
+    return (x.astype(np.int64) << 42) | (y.astype(np.int64) << 21) | z.astype(np.int64)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    n_rows=st.integers(1, 400),
+    width=st.integers(1, 30),
+    height=st.integers(1, 300),
+    n_keys=st.integers(0, 300),
+    sparse=st.booleans(),
+    seed=st.integers(0, 2**32 - 1),
+)
+def test_rows_of_packed_voxel_keys_through_their_columns_equal_searchsorted(
+    n_rows: int, width: int, height: int, n_keys: int, sparse: bool, seed: int
+) -> None:
+    """A tile's level-0 voxels fill the rectangle of their columns: their keys are found
+    through a table of the columns (walls: columns of many voxels); keys of other columns,
+    outside the rectangle, missing (-1) or absent from a present column are not found.
+    Rows spread over a large rectangle are searched instead."""
+    rng = np.random.default_rng(seed)
+    spread = 5000 if sparse else width
+    x = rng.integers(1000, 1000 + spread, n_rows)
+    y = rng.integers(2000, 2000 + width, n_rows)
+    z = rng.integers(0, height, n_rows)
+    row_keys = np.unique(_packed(x, y, z))
+    present = row_keys[rng.integers(0, row_keys.size, n_keys)]
+    near = _packed(
+        rng.integers(995, 1005 + spread, n_keys),
+        rng.integers(1995, 2005 + width, n_keys),
+        rng.integers(0, height + 2, n_keys),
+    )
+    keys = np.where(rng.random(n_keys) < 0.5, present, near)
+    keys[rng.random(n_keys) < 0.1] = -1
+    keys = keys.reshape(-1, 1)
+    position = np.minimum(np.searchsorted(row_keys, keys), row_keys.size - 1)
+    expected = np.where(row_keys[position] == keys, position, -1)
+    if not sparse:  # a filled rectangle of columns: the table's path
+        assert _column_table(row_keys)[3] > 0
+    for n in THREADS:
+        with thread_limit(n):
+            np.testing.assert_array_equal(rows_of_keys(keys, row_keys), expected)
+
+
+def test_a_tiles_voxels_take_the_column_table_and_sparse_or_negative_keys_do_not() -> None:
+    x, y = np.meshgrid(np.arange(64), np.arange(64), indexing="ij")
+    tile = np.unique(_packed(x.reshape(-1), y.reshape(-1), np.zeros(x.size, np.int64)))
+    assert _column_table(tile)[3] == 64
+    apart = np.array([_packed(np.array([0]), np.array([0]), np.array([0]))[0], 1 << 60])
+    assert _column_table(apart)[3] == 0
+    assert _column_table(np.array([-5, 3], np.int64))[3] == 0
+    np.testing.assert_array_equal(rows_of_keys(np.array([3, -5, 4]), np.array([-5, 3])), [1, 0, -1])
 
 
 def test_rows_of_keys_in_place_takes_only_an_array_it_can_write_over() -> None:

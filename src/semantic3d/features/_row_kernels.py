@@ -120,13 +120,110 @@ def _rows_of_keys(
         out[i] = position if row_keys[position] == key else -1
 
 
+_KEY_BITS = 21
+"""Bits of each of a packed voxel key's three parts (``spatial.voxels.CELL_BITS``):
+``x << 42 | y << 21 | z``, so sorted keys run column (x, y) by column."""
+
+_COLUMN_TABLE_SLACK = 4
+"""A table of the rows' columns is made when it has at most this many entries a row
+(plus a few thousand): a tile's rows fill its columns, a sparse set would not."""
+
+
+def _column_table(row_keys: NDArray[np.int64]) -> tuple[NDArray[np.int64], int, int, int, int]:
+    """Where each (x, y) column of the sorted ``row_keys`` starts (a dense table over the
+    columns' rectangle), with the rectangle: ``(starts, x0, y0, nx, ny)``; ``nx = 0`` when
+    the rectangle is too large for a table (or a key is negative)."""
+    first, last = int(row_keys[0]), int(row_keys[-1])
+    if first < 0:
+        return np.empty(0, np.int64), 0, 0, 0, 0
+    x0, x1 = first >> (2 * _KEY_BITS), last >> (2 * _KEY_BITS)
+    low_y, high_y = _y_range(row_keys)
+    nx, ny = x1 - x0 + 1, int(high_y) - int(low_y) + 1
+    if nx * ny > _COLUMN_TABLE_SLACK * row_keys.size + 4096:
+        return np.empty(0, np.int64), 0, 0, 0, 0
+    return _column_starts(row_keys, x0, int(low_y), ny, nx * ny), x0, int(low_y), nx, ny
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _y_range(row_keys: NDArray[np.int64]) -> tuple[int, int]:  # pragma: no cover - compiled
+    mask = (1 << _KEY_BITS) - 1
+    low = mask
+    high = 0
+    for i in numba.prange(row_keys.size):
+        y = (row_keys[i] >> _KEY_BITS) & mask
+        low = min(low, y)
+        high = max(high, y)
+    return low, high
+
+
+@numba.njit(cache=True, nogil=True)
+def _column_starts(
+    row_keys: NDArray[np.int64], x0: int, y0: int, ny: int, n_columns: int
+) -> NDArray[np.int64]:  # pragma: no cover - compiled
+    """``starts[c]``: the first row of column ``c = (x - x0) * ny + (y - y0)`` or of the
+    next present one (sorted keys: a column's rows are consecutive); ``starts[n_columns]``
+    is the rows' count."""
+    mask = (1 << _KEY_BITS) - 1
+    starts = np.empty(n_columns + 1, np.int64)
+    column = 0
+    for row in range(row_keys.size):
+        key = row_keys[row]
+        mine = ((key >> (2 * _KEY_BITS)) - x0) * ny + (((key >> _KEY_BITS) & mask) - y0)
+        while column <= mine:
+            starts[column] = row
+            column += 1
+    while column <= n_columns:
+        starts[column] = row_keys.size
+        column += 1
+    return starts
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _rows_of_keys_by_column(
+    keys: NDArray[np.int64],
+    row_keys: NDArray[np.int64],
+    starts: NDArray[np.int64],
+    x0: int,
+    y0: int,
+    nx: int,
+    ny: int,
+    out: NDArray[np.int64],
+) -> None:  # pragma: no cover - compiled
+    """:func:`_rows_of_keys` through the table of the rows' columns: a key's column gives
+    its few candidate rows at once, where a search through every row made ~20 steps
+    through memory far apart."""
+    mask = (1 << _KEY_BITS) - 1
+    for i in numba.prange(keys.size):
+        key = keys[i]
+        found = -1
+        if key >= 0:
+            x = (key >> (2 * _KEY_BITS)) - x0
+            y = ((key >> _KEY_BITS) & mask) - y0
+            if 0 <= x < nx and 0 <= y < ny:
+                column = x * ny + y
+                low = starts[column]
+                end = starts[column + 1]
+                high = end
+                while low < high:  # the column's first key not below (a wall's: many)
+                    middle = (low + high) >> 1
+                    if row_keys[middle] < key:
+                        low = middle + 1
+                    else:
+                        high = middle
+                if low < end and row_keys[low] == key:
+                    found = low
+        out[i] = found
+
+
 def rows_of_keys(
     keys: NDArray[np.int64], row_keys: NDArray[np.int64], *, in_place: bool = False
 ) -> NDArray[np.int64]:
     """The row of every key in ``keys`` (any shape): its position in the sorted unique
     ``row_keys``, or -1 where it is not there. ``in_place``: written over ``keys`` (a
     C-contiguous int64 array), which is returned; a tile's neighbour lists are 80 bytes
-    a voxel."""
+    a voxel. Packed voxel keys of rows that fill their columns' rectangle (a tile's
+    level-0 voxels) are found through a table of the columns (:func:`_column_table`,
+    about 3x faster than searching every row); other keys by a search."""
     if in_place:
         if keys.dtype != np.int64 or not keys.flags.c_contiguous or not keys.flags.writeable:
             raise ValueError("keys: expected a writeable C-contiguous int64 array in place")
@@ -136,11 +233,13 @@ def rows_of_keys(
     if row_keys.size == 0:
         rows[...] = -1
         return rows
-    _rows_of_keys(  # each key is read before its row is written
-        np.ascontiguousarray(keys, dtype=np.int64).reshape(-1),
-        np.ascontiguousarray(row_keys, dtype=np.int64),
-        rows.reshape(-1),
-    )
+    sorted_keys = np.ascontiguousarray(row_keys, dtype=np.int64)
+    flat = np.ascontiguousarray(keys, dtype=np.int64).reshape(-1)
+    starts, x0, y0, nx, ny = _column_table(sorted_keys)
+    if nx:  # each key is read before its row is written
+        _rows_of_keys_by_column(flat, sorted_keys, starts, x0, y0, nx, ny, rows.reshape(-1))
+    else:
+        _rows_of_keys(flat, sorted_keys, rows.reshape(-1))
     return rows
 
 
