@@ -245,9 +245,7 @@ def build_pyramid_in_parts(
     voxel_of_slot = np.empty(n_voxels, np.int64)
     voxel_of_slot[known_slots] = np.arange(n_voxels, dtype=np.int64)
     point_voxel = _gathered(voxel_of_slot, point_slot)  # in place of the slots
-    level_counts = counts[known_slots]
-    level_xyz = totals[known_slots] / level_counts[:, None]
-    level_values = value_totals[known_slots] / level_counts[:, None]
+    level_xyz, level_values = _slot_means(totals, value_totals, counts, known_slots)
     return VoxelPyramid(
         origin=anchor,
         levels=_stacked_levels(
@@ -255,6 +253,29 @@ def build_pyramid_in_parts(
         ),
         point_voxel=point_voxel,
     )
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _slot_means(
+    totals: NDArray[np.float64],
+    value_totals: NDArray[np.float64],
+    counts: NDArray[np.int64],
+    slots: NDArray[np.int64],
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:  # pragma: no cover - compiled
+    """The means of the voxels in key order (``slots``: each one's slot of running sums):
+    ``totals[slots] / counts[slots][:, None]`` and the same of ``value_totals``, on every
+    thread (numpy's gathers and divisions ran on one, after the tile's parallel passes)."""
+    n = slots.size
+    xyz = np.empty((n, 3), np.float64)
+    values = np.empty((n, value_totals.shape[1]), np.float64)
+    for voxel in numba.prange(n):
+        slot = slots[voxel]
+        count = np.float64(counts[slot])
+        for axis in range(3):
+            xyz[voxel, axis] = totals[slot, axis] / count
+        for column in range(value_totals.shape[1]):
+            values[voxel, column] = value_totals[slot, column] / count
+    return xyz, values
 
 
 def _grown(values: NDArray[Any], capacity: int) -> NDArray[Any]:
