@@ -16,19 +16,10 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 
 
-@pytest.mark.slow
-def test_the_scaling_benchmark_measures_each_path_beside_its_peer_and_floor(
-    tmp_path: Path,
-) -> None:
-    out = tmp_path / "out"
+def _run(script: str, *args: str) -> str:
+    """A benchmark script run to its end in a fresh interpreter; its standard output."""
     done = subprocess.run(
-        [
-            sys.executable,
-            str(ROOT / "benchmarks" / "bench_scaling.py"),
-            *("--points", "20000", "--threads", "1", "--repeat", "1", "--min-seconds", "0"),
-            *("--paths", "evaluate", "read_labels", "simulate"),
-            *("--out", str(out), "--workdir", str(tmp_path)),
-        ],
+        [sys.executable, str(ROOT / "benchmarks" / script), *args],
         capture_output=True,
         text=True,
         stdin=subprocess.DEVNULL,
@@ -37,6 +28,20 @@ def test_the_scaling_benchmark_measures_each_path_beside_its_peer_and_floor(
         check=False,
     )
     assert done.returncode == 0, done.stderr[-3000:]
+    return done.stdout.strip()
+
+
+@pytest.mark.slow
+def test_the_scaling_benchmark_measures_each_path_beside_its_peer_and_floor(
+    tmp_path: Path,
+) -> None:
+    out = tmp_path / "out"
+    _run(
+        "bench_scaling.py",
+        *("--points", "20000", "--threads", "1", "--repeat", "1", "--min-seconds", "0"),
+        *("--paths", "evaluate", "read_labels", "simulate"),
+        *("--out", str(out), "--workdir", str(tmp_path)),
+    )
     report = json.loads((out / "bench_scaling.json").read_text())
     rows = {row["path"]: row for row in report["rows"]}
     assert set(rows) == {"evaluate", "read_labels", "simulate"}
@@ -51,21 +56,7 @@ def test_the_scaling_benchmark_measures_each_path_beside_its_peer_and_floor(
 
 
 def test_the_cylinder_benchmark_checks_its_kernels_agree_and_measures_the_peer() -> None:
-    done = subprocess.run(
-        [
-            sys.executable,
-            str(ROOT / "benchmarks" / "bench_cylinders.py"),
-            *("--points", "30000", "--peer-queries", "300"),
-        ],
-        capture_output=True,
-        text=True,
-        stdin=subprocess.DEVNULL,
-        env={**os.environ, "PYTHONPATH": str(ROOT / "src")},
-        timeout=300,
-        check=False,
-    )
-    assert done.returncode == 0, done.stderr[-3000:]
-    lines = done.stdout.strip().splitlines()
+    lines = _run("bench_cylinders.py", "--points", "30000", "--peer-queries", "300").splitlines()
     assert "the two kernels equal bit for bit" in lines[0]
     names = [line.split("  ")[0] for line in lines[2:]]
     assert names == ["cylinder_below alone", "four columns", "scipy cKDTree 2-D"]

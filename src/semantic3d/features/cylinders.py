@@ -185,6 +185,24 @@ def _cylinder_kernel(
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
+def _column_cells(
+    cell_codes: NDArray[np.int64], x: int, cy: int
+) -> tuple[int, int]:  # pragma: no cover
+    """The present cells among ``(x, cy - 1 .. cy + 1)``: entries ``first .. end - 1`` of
+    ``cell_codes`` (their points are ``starts[first]:starts[end]``). The three have
+    consecutive codes: one search finds the first present, the entries after it are the
+    others present."""
+    if x < 0 or cy + 1 < 0:
+        return 0, 0
+    first = np.searchsorted(cell_codes, (x << _SHIFT) | max(cy - 1, 0))
+    last = (x << _SHIFT) | (cy + 1)
+    end = first
+    while end < cell_codes.size and cell_codes[end] <= last:
+        end += 1
+    return first, end
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
 def _cylinder(
     points: NDArray[np.float64],
     cell_codes: NDArray[np.int64],
@@ -207,23 +225,15 @@ def _cylinder(
     high = -np.inf
     count = 0
     for dx in range(-1, 2):
-        if cx + dx < 0 or cy + 1 < 0:
-            continue
-        # cells (cx + dx, cy - 1 .. cy + 1) have consecutive codes: one search finds
-        # the first of them present, the entries after it are the others present
-        first = ((cx + dx) << _SHIFT) | max(cy - 1, 0)
-        last = ((cx + dx) << _SHIFT) | (cy + 1)
-        j = np.searchsorted(cell_codes, first)
-        while j < cell_codes.size and cell_codes[j] <= last:
-            for p in range(starts[j], starts[j + 1]):
-                ex = points[p, 0] - qx
-                ey = points[p, 1] - qy
-                if ex * ex + ey * ey <= squared:
-                    z = points[p, 2]
-                    low = min(low, z)
-                    high = max(high, z)
-                    count += 1
-            j += 1
+        j, end = _column_cells(cell_codes, cx + dx, cy)
+        for p in range(starts[j], starts[end]):
+            ex = points[p, 0] - qx
+            ey = points[p, 1] - qy
+            if ex * ex + ey * ey <= squared:
+                z = points[p, 2]
+                low = min(low, z)
+                high = max(high, z)
+                count += 1
     if count == 0:
         for c in range(4):
             out[row, c] = 0.0
@@ -297,13 +307,9 @@ def _below_kernel(
                 low = np.inf
                 found = False
                 for dx in range(-1, 2):
-                    if cx + dx < 0 or cy + 1 < 0:
-                        continue
-                    first = ((cx + dx) << _SHIFT) | max(cy - 1, 0)
-                    last = ((cx + dx) << _SHIFT) | (cy + 1)
-                    j = np.searchsorted(cell_codes, first)
-                    while j < cell_codes.size and cell_codes[j] <= last:
-                        for p in range(starts[j], starts[j + 1]):
+                    j, end = _column_cells(cell_codes, cx + dx, cy)
+                    for cell_run in range(j, end):
+                        for p in range(starts[cell_run], starts[cell_run + 1]):
                             z = points[p, 2]
                             if found and z >= low:
                                 break  # the cell's points above cannot be lower
@@ -313,5 +319,4 @@ def _below_kernel(
                                 low = z
                                 found = True
                                 break  # the cell's lowest inside the radius
-                        j += 1
                 out[row, 0] = queries[row, 2] - low if found else 0.0
