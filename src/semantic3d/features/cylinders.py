@@ -194,7 +194,7 @@ def _column_cells(
     others present."""
     if x < 0 or cy + 1 < 0:
         return 0, 0
-    first = np.searchsorted(cell_codes, (x << _SHIFT) | max(cy - 1, 0))
+    first = int(np.searchsorted(cell_codes, (x << _SHIFT) | max(cy - 1, 0)))
     last = (x << _SHIFT) | (cy + 1)
     end = first
     while end < cell_codes.size and cell_codes[end] <= last:
