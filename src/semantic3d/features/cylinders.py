@@ -100,25 +100,28 @@ def compute_cylinder_features(
     grouped = take_rows(points, order)
     run_codes = codes[order[starts[:-1]]]
     del codes, order
-    n_threads = numba.get_num_threads()
-    # A C-contiguous destination only: another layout would be another compilation.
-    every = len(features) == N_CYLINDER_COLUMNS
-    block = out if out.flags.c_contiguous and (every or lowest_only) else None
     if lowest_only:
         _lowest_first(grouped, starts)
-        column = block if block is not None else np.empty(shape, np.float32)
-        _below_kernel(
-            grouped, run_codes, starts, queries, origin, cell, radius_m, column, n_threads
-        )
-        if block is None:
-            out[...] = column
-        return out
-    columns = block if block is not None else np.empty((shape[0], N_CYLINDER_COLUMNS), np.float32)
+    width = 1 if lowest_only else N_CYLINDER_COLUMNS
+    # A C-contiguous destination only: another layout would be another compilation.
+    block = out if out.flags.c_contiguous and shape[1] == width else None
+    target = block if block is not None else np.empty((shape[0], width), np.float32)
     _cylinder_kernel(
-        grouped, run_codes, starts, queries, origin, cell, radius_m, columns, n_threads
+        grouped,
+        run_codes,
+        starts,
+        queries,
+        origin,
+        cell,
+        radius_m,
+        lowest_only,
+        target,
+        numba.get_num_threads(),
     )
     if block is None:
-        out[...] = columns[:, [CYLINDER_FEATURES.index(name) for name in features]]
+        out[...] = (
+            target if lowest_only else target[:, [CYLINDER_FEATURES.index(n) for n in features]]
+        )
     return out
 
 
@@ -168,9 +171,13 @@ def _cylinder_kernel(
     origin: NDArray[np.float64],
     cell: float,
     radius_m: float,
+    lowest_only: bool,
     out: NDArray[np.float32],
     n_threads: int,
 ) -> None:  # pragma: no cover - compiled
+    """Every query's four columns (:func:`_cylinder`) or, ``lowest_only``, its
+    ``cylinder_below`` alone into ``out[:, 0]`` (:func:`_lowest`: the cells' points lowest
+    first, :func:`_lowest_first`)."""
     m = queries.shape[0]
     taken = np.zeros(1, np.int64)
     # blocks taken as threads come free: a query costs the points around it (dense near
@@ -181,7 +188,10 @@ def _cylinder_kernel(
             if start >= stop:
                 break
             for row in range(start, stop):
-                _cylinder(points, cell_codes, starts, queries, origin, cell, radius_m, out, row)
+                if lowest_only:
+                    _lowest(points, cell_codes, starts, queries, origin, cell, radius_m, out, row)
+                else:
+                    _cylinder(points, cell_codes, starts, queries, origin, cell, radius_m, out, row)
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -275,8 +285,8 @@ def _lowest_first(
             points[begin:end] = by_height
 
 
-@numba.njit(cache=True, nogil=True, parallel=True)
-def _below_kernel(
+@numba.njit(cache=True, nogil=True, inline="always")
+def _lowest(
     points: NDArray[np.float64],
     cell_codes: NDArray[np.int64],
     starts: NDArray[np.int64],
@@ -285,38 +295,29 @@ def _below_kernel(
     cell: float,
     radius_m: float,
     out: NDArray[np.float32],
-    n_threads: int,
+    row: int,
 ) -> None:  # pragma: no cover - compiled
-    """``cylinder_below`` of every query into ``out[:, 0]``: the cells' points lowest first
-    (:func:`_lowest_first`), each cell read from its lowest point up until a point inside
-    the radius or one no lower than the lowest found (the 3 x 3 cells of
-    :func:`_cylinder`, the same test)."""
-    m = queries.shape[0]
-    taken = np.zeros(1, np.int64)
+    """``cylinder_below`` of query ``row`` into ``out[row, 0]``: each of the 3 x 3 cells of
+    :func:`_cylinder` read from its lowest point up (:func:`_lowest_first`), until a point
+    inside the radius (the same test) or one no lower than the lowest found."""
     squared = radius_m * radius_m
-    for _ in numba.prange(row_workers(n_threads, m, _QUERY_BLOCK)):
-        while True:
-            start, stop = take_row_block(taken, m, _QUERY_BLOCK)
-            if start >= stop:
-                break
-            for row in range(start, stop):
-                qx = queries[row, 0]
-                qy = queries[row, 1]
-                cx = math.floor((qx - origin[0]) / cell)
-                cy = math.floor((qy - origin[1]) / cell)
-                low = np.inf
-                found = False
-                for dx in range(-1, 2):
-                    j, end = _column_cells(cell_codes, cx + dx, cy)
-                    for cell_run in range(j, end):
-                        for p in range(starts[cell_run], starts[cell_run + 1]):
-                            z = points[p, 2]
-                            if found and z >= low:
-                                break  # the cell's points above cannot be lower
-                            ex = points[p, 0] - qx
-                            ey = points[p, 1] - qy
-                            if ex * ex + ey * ey <= squared:
-                                low = z
-                                found = True
-                                break  # the cell's lowest inside the radius
-                out[row, 0] = queries[row, 2] - low if found else 0.0
+    qx = queries[row, 0]
+    qy = queries[row, 1]
+    cx = math.floor((qx - origin[0]) / cell)
+    cy = math.floor((qy - origin[1]) / cell)
+    low = np.inf
+    found = False
+    for dx in range(-1, 2):
+        j, end = _column_cells(cell_codes, cx + dx, cy)
+        for cell_run in range(j, end):
+            for p in range(starts[cell_run], starts[cell_run + 1]):
+                z = points[p, 2]
+                if found and z >= low:
+                    break  # the cell's points above cannot be lower
+                ex = points[p, 0] - qx
+                ey = points[p, 1] - qy
+                if ex * ex + ey * ey <= squared:
+                    low = z
+                    found = True
+                    break  # the cell's lowest inside the radius
+    out[row, 0] = queries[row, 2] - low if found else 0.0
