@@ -134,9 +134,9 @@ def main() -> None:
         below = _ours(path, ("cylinder_below",))[1]
         every = _ours(path, CYLINDER_FEATURES)[1]
         for level, (a, b) in enumerate(zip(below, every, strict=True)):
-            if a.view(np.uint32).tolist() != b.view(np.uint32).tolist():
+            if not np.array_equal(a.view(np.uint32), b.view(np.uint32)):
                 raise SystemExit(f"level {level}: cylinder_below differs between the kernels")
-        n_queries = int(np.load(path)["queries"].shape[0])
+        n_queries = below[0].shape[0]
         options = ["--levels", str(path), "--peer-queries", str(args.peer_queries)]
         rows = [
             measure_in_child(HERE, name, *options)

@@ -13,6 +13,8 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
+from semantic3d.spatial.voxels import CELL_BITS  # packed keys: x, y, z of this many bits each
+
 __all__ = [
     "copy_rows",
     "distinct_values",
@@ -120,10 +122,6 @@ def _rows_of_keys(
         out[i] = position if row_keys[position] == key else -1
 
 
-_KEY_BITS = 21
-"""Bits of each of a packed voxel key's three parts (``spatial.voxels.CELL_BITS``):
-``x << 42 | y << 21 | z``, so sorted keys run column (x, y) by column."""
-
 _COLUMN_TABLE_SLACK = 4
 """A table of the rows' columns is made when it has at most this many entries a row
 (plus a few thousand): a tile's rows fill its columns, a sparse set would not."""
@@ -136,7 +134,7 @@ def _column_table(row_keys: NDArray[np.int64]) -> tuple[NDArray[np.int64], int, 
     first, last = int(row_keys[0]), int(row_keys[-1])
     if first < 0:
         return np.empty(0, np.int64), 0, 0, 0, 0
-    x0, x1 = first >> (2 * _KEY_BITS), last >> (2 * _KEY_BITS)
+    x0, x1 = first >> (2 * CELL_BITS), last >> (2 * CELL_BITS)
     low_y, high_y = _y_range(row_keys)
     nx, ny = x1 - x0 + 1, int(high_y) - int(low_y) + 1
     if nx * ny > _COLUMN_TABLE_SLACK * row_keys.size + 4096:
@@ -146,11 +144,11 @@ def _column_table(row_keys: NDArray[np.int64]) -> tuple[NDArray[np.int64], int, 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
 def _y_range(row_keys: NDArray[np.int64]) -> tuple[int, int]:  # pragma: no cover - compiled
-    mask = (1 << _KEY_BITS) - 1
+    mask = (1 << CELL_BITS) - 1
     low = mask
     high = 0
     for i in numba.prange(row_keys.size):
-        y = (row_keys[i] >> _KEY_BITS) & mask
+        y = (row_keys[i] >> CELL_BITS) & mask
         low = min(low, y)
         high = max(high, y)
     return low, high
@@ -163,12 +161,12 @@ def _column_starts(
     """``starts[c]``: the first row of column ``c = (x - x0) * ny + (y - y0)`` or of the
     next present one (sorted keys: a column's rows are consecutive); ``starts[n_columns]``
     is the rows' count."""
-    mask = (1 << _KEY_BITS) - 1
+    mask = (1 << CELL_BITS) - 1
     starts = np.empty(n_columns + 1, np.int64)
     column = 0
     for row in range(row_keys.size):
         key = row_keys[row]
-        mine = ((key >> (2 * _KEY_BITS)) - x0) * ny + (((key >> _KEY_BITS) & mask) - y0)
+        mine = ((key >> (2 * CELL_BITS)) - x0) * ny + (((key >> CELL_BITS) & mask) - y0)
         while column <= mine:
             starts[column] = row
             column += 1
@@ -192,13 +190,13 @@ def _rows_of_keys_by_column(
     """:func:`_rows_of_keys` through the table of the rows' columns: a key's column gives
     its few candidate rows at once, where a search through every row made ~20 steps
     through memory far apart."""
-    mask = (1 << _KEY_BITS) - 1
+    mask = (1 << CELL_BITS) - 1
     for i in numba.prange(keys.size):
         key = keys[i]
         found = -1
         if key >= 0:
-            x = (key >> (2 * _KEY_BITS)) - x0
-            y = ((key >> _KEY_BITS) & mask) - y0
+            x = (key >> (2 * CELL_BITS)) - x0
+            y = ((key >> CELL_BITS) & mask) - y0
             if 0 <= x < nx and 0 <= y < ny:
                 column = x * ny + y
                 low = starts[column]
